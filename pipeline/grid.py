@@ -1,0 +1,100 @@
+"""The raster grid every feature and the prior live on: projected CRS, metres, north-up."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from affine import Affine
+from rasterio.crs import CRS
+
+
+class GridError(ValueError):
+    """A grid that cannot carry metric features (geographic CRS, bad bounds or cell size)."""
+
+
+@dataclass(frozen=True)
+class Grid:
+    """A north-up raster grid in a projected CRS whose units are metres.
+
+    Row 0 is the northern edge; column 0 the western edge. ``transform`` maps
+    (col, row) pixel coordinates to (x, y) map coordinates in metres.
+    """
+
+    crs: CRS
+    transform: Affine
+    height: int
+    width: int
+
+    def __post_init__(self) -> None:
+        crs = CRS.from_user_input(self.crs)
+        object.__setattr__(self, "crs", crs)
+        if crs.is_geographic:
+            raise GridError(
+                f"grid CRS {crs.to_string()} is geographic (degrees); features need metres: "
+                "choose a projected CRS or set crs = \"utm\" in the region config"
+            )
+        t = self.transform
+        if t.b != 0 or t.d != 0 or t.a <= 0 or t.e >= 0:
+            raise GridError(f"grid transform must be north-up with positive cell sizes, got {t!r}")
+        if self.height <= 0 or self.width <= 0:
+            raise GridError(f"grid shape must be positive, got {self.height} x {self.width}")
+
+    @classmethod
+    def from_bounds(
+        cls, bounds: tuple[float, float, float, float], cell_size: float, crs: CRS | str
+    ) -> Grid:
+        """Grid covering ``bounds`` = (xmin, ymin, xmax, ymax) in metres with square cells.
+
+        The extent is rounded up to whole cells from the north-west corner.
+        """
+        xmin, ymin, xmax, ymax = map(float, bounds)
+        if not (xmax > xmin and ymax > ymin):
+            raise GridError(f"grid bounds must have xmax > xmin and ymax > ymin, got {bounds}")
+        if not cell_size > 0:
+            raise GridError(f"cell_size must be positive metres, got {cell_size}")
+        width = int(np.ceil((xmax - xmin) / cell_size - 1e-9))
+        height = int(np.ceil((ymax - ymin) / cell_size - 1e-9))
+        return cls(crs, Affine(cell_size, 0.0, xmin, 0.0, -cell_size, ymax), height, width)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (self.height, self.width)
+
+    @property
+    def dx(self) -> float:
+        """Cell width in metres."""
+        return float(self.transform.a)
+
+    @property
+    def dy(self) -> float:
+        """Cell height in metres (positive)."""
+        return float(-self.transform.e)
+
+    @property
+    def cell_area(self) -> float:
+        """Cell area in square metres."""
+        return self.dx * self.dy
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        """(xmin, ymin, xmax, ymax) in metres."""
+        left, top = self.transform.c, self.transform.f
+        return (left, top - self.height * self.dy, left + self.width * self.dx, top)
+
+    def to_pixel(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Fractional pixel coordinates (u = column, v = row) of map points; cell (r, c) spans [c, c+1) x [r, r+1)."""
+        u = (np.asarray(x, dtype=np.float64) - self.transform.c) / self.dx
+        v = (self.transform.f - np.asarray(y, dtype=np.float64)) / self.dy
+        return u, v
+
+    def cell_centres(self) -> tuple[np.ndarray, np.ndarray]:
+        """Map coordinates (x, y) of cell centres as two (height, width) arrays."""
+        xs = self.transform.c + (np.arange(self.width) + 0.5) * self.dx
+        ys = self.transform.f - (np.arange(self.height) + 0.5) * self.dy
+        return np.meshgrid(xs, ys)
+
+    def window_grid(self, row_off: int, col_off: int, height: int, width: int) -> Grid:
+        """The sub-grid of a window (rasterio's row/col offsets), same CRS and cell size."""
+        t = self.transform * Affine.translation(col_off, row_off)
+        return Grid(self.crs, t, height, width)
