@@ -1,0 +1,96 @@
+"""Batches of sensor reports and of target hypotheses, as arrays (no per-object Python objects).
+
+Positions are map coordinates in metres in the prior's CRS; times in seconds; covariances in m^2.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+def check_gaussians(means: np.ndarray, covs: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray]:
+    """Validate (N, d) means and (N, d, d) symmetric positive-definite covariances.
+
+    Raises ``ValueError`` naming ``what`` and the offending indices.
+    """
+    means = np.asarray(means, dtype=np.float64)
+    covs = np.asarray(covs, dtype=np.float64)
+    if means.ndim != 2 or covs.ndim != 3 or covs.shape != (means.shape[0], means.shape[1], means.shape[1]):
+        raise ValueError(f"{what}: means must be (N, d) and covariances (N, d, d); got {means.shape} and {covs.shape}")
+    bad = np.flatnonzero(~np.isfinite(means).all(axis=1))
+    if bad.size:
+        raise ValueError(f"{what}: non-finite means at indices {bad[:10].tolist()}")
+    bad = np.flatnonzero(~np.isfinite(covs).all(axis=(1, 2)))
+    if bad.size:
+        raise ValueError(f"{what}: non-finite covariances at indices {bad[:10].tolist()}")
+    scale = np.abs(covs).max(axis=(1, 2), initial=0.0)
+    asym = np.abs(covs - covs.transpose(0, 2, 1)).max(axis=(1, 2), initial=0.0)
+    bad = np.flatnonzero(asym > 1e-9 * np.maximum(scale, 1e-300))
+    if bad.size:
+        raise ValueError(f"{what}: covariances not symmetric at indices {bad[:10].tolist()}")
+    if means.shape[0]:
+        eig_min = np.linalg.eigvalsh(covs)[:, 0]
+        bad = np.flatnonzero(~(eig_min > 0))
+        if bad.size:
+            raise ValueError(f"{what}: covariances not positive definite at indices {bad[:10].tolist()}")
+    return means, covs
+
+
+@dataclass(frozen=True)
+class Reports:
+    """K position reports z_k ~ N(x_j, V_k): ``means`` (K, d) metres, ``covs`` (K, d, d) m^2,
+    ``times`` (K,) seconds, and, for simulated data, ``truth`` (K,) the index of the target that made each
+    report (-1 when unknown)."""
+
+    means: np.ndarray
+    covs: np.ndarray
+    times: np.ndarray
+    truth: np.ndarray
+
+    @classmethod
+    def create(
+        cls,
+        means: np.ndarray,
+        covs: np.ndarray,
+        times: np.ndarray | None = None,
+        truth: np.ndarray | None = None,
+    ) -> Reports:
+        means, covs = check_gaussians(means, covs, "reports")
+        n = means.shape[0]
+        times = np.zeros(n) if times is None else np.asarray(times, dtype=np.float64)
+        truth = np.full(n, -1, dtype=np.int64) if truth is None else np.asarray(truth, dtype=np.int64)
+        if times.shape != (n,) or truth.shape != (n,):
+            raise ValueError(f"reports: times and truth must be ({n},), got {times.shape} and {truth.shape}")
+        bad = np.flatnonzero(~np.isfinite(times))
+        if bad.size:
+            raise ValueError(f"reports: non-finite times at indices {bad[:10].tolist()}")
+        return cls(means, covs, times, truth)
+
+    def __len__(self) -> int:
+        return self.means.shape[0]
+
+    def subset(self, idx: np.ndarray | slice) -> Reports:
+        return Reports(self.means[idx], self.covs[idx], self.times[idx], self.truth[idx])
+
+
+def gaussian_product(
+    a: np.ndarray, A: np.ndarray, z: np.ndarray, V: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """G(y; a, A)·G(y; z, V) = G(z; a, A+V)·G(y; b, B), batched over the leading axis.
+
+    Returns (b, B, log G(z; a, A+V)) with B = (A⁻¹+V⁻¹)⁻¹ and b = B(A⁻¹a + V⁻¹z), computed in the
+    stable form B = A - A(A+V)⁻¹A, b = a + A(A+V)⁻¹(z-a).
+    """
+    S = A + V
+    S_inv = np.linalg.inv(S)
+    K = A @ S_inv
+    r = z - a
+    b = a + np.einsum("nij,nj->ni", K, r)
+    B = A - K @ A
+    B = 0.5 * (B + B.transpose(0, 2, 1))
+    d = a.shape[1]
+    maha = np.einsum("ni,nij,nj->n", r, S_inv, r)
+    log_g = -0.5 * (maha + np.linalg.slogdet(S)[1] + d * np.log(2 * np.pi))
+    return b, B, log_g
