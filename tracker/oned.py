@@ -126,6 +126,7 @@ def previously_unseen(
 ) -> np.ndarray:
     """previouslyUnseen with S = 1: int G(x; z, sigma^2) p(x) dx for the cosine terrain."""
     lam = _check_positive("wavelength", wavelength)
+    sigma = _check_positive("sigma", sigma)
     k = 2 * np.pi / lam
     numer = _mass(z, sigma, half_width) + gauss_cos_integral(
         k, phase, -half_width, half_width, z, sigma
