@@ -160,6 +160,19 @@ def unseen_gain(
     )
 
 
+def periodic_relative_gain(
+    wavelength: ArrayLike, phase: ArrayLike = 0.0, sigma: ArrayLike = 1.0
+) -> np.ndarray:
+    """Whole-line limit of unseen_gain / previously_unseen_uniform: exp(-k^2 sigma^2 / 2) cos(delta).
+
+    For a report at a terrain crest (z = 0) on an unbounded periodic terrain normalised per period
+    (support [-L, L] with L a multiple of lambda, L >> sigma). Dimensionless.
+    """
+    k = 2 * np.pi / _check_positive("wavelength", wavelength)
+    sigma = _check_positive("sigma", sigma)
+    return np.exp(-0.5 * (k * sigma) ** 2) * np.cos(phase)
+
+
 def posterior_density(
     x: ArrayLike,
     wavelength: ArrayLike,
@@ -212,6 +225,17 @@ def posterior_ise(
         + 2 * a * b * gauss_cos_integral(k, phase, lo, hi, z, narrow)
         + b**2 / 2 * gauss_cos_integral(2 * k, 2 * np.asarray(phase), lo, hi, z, narrow)
     )
+
+
+def normaliser_min_wavelength(half_width: ArrayLike = HALF_WIDTH) -> np.ndarray:
+    """Wavelength minimising the delta = 0 normaliser 2L + 2 sin(kL)/k (same units as L).
+
+    d/dk [sin(kL)/k] = 0 at tan(kL) = kL; the first positive root lies in (pi, 3 pi/2). The lower
+    normaliser raises the prior at the report, which is why best_wavelength tracks the support.
+    """
+    half_width = _check_positive("half_width", half_width)
+    root = optimize.brentq(lambda t: np.sin(t) - t * np.cos(t), np.pi, 1.5 * np.pi, xtol=1e-14)
+    return 2 * np.pi * half_width / root
 
 
 def best_wavelength(

@@ -14,8 +14,10 @@ L = oned.HALF_WIDTH
 QUAD = dict(limit=4000, epsabs=1e-13, epsrel=1e-11)
 
 
-def quad(f, a=-L, b=L) -> float:
-    return integrate.quad(f, a, b, **QUAD)[0]
+def quad(f, a=-L, b=L, peak=None) -> float:
+    """quad over [a, b]; `peak` marks a narrow feature (the report) so wide intervals do not miss it."""
+    points = [peak] if peak is not None and a < peak < b else None
+    return integrate.quad(f, a, b, points=points, **QUAD)[0]
 
 
 def raw_terrain(x, lam, delta):
@@ -29,11 +31,12 @@ def oracle_unseen(lam, delta, z=0.0, sigma=1.0, half_width=L) -> float:
         lambda x: stats.norm.pdf(x, z, sigma) * raw_terrain(x, lam, delta) / norm,
         -half_width,
         half_width,
+        peak=z,
     )
 
 
 def oracle_gain(lam, delta, z=0.0, sigma=1.0, half_width=L) -> float:
-    uniform = quad(lambda x: stats.norm.pdf(x, z, sigma), -half_width, half_width) / (2 * half_width)
+    uniform = quad(lambda x: stats.norm.pdf(x, z, sigma), -half_width, half_width, z) / (2 * half_width)
     return oracle_unseen(lam, delta, z, sigma, half_width) - uniform
 
 
@@ -240,6 +243,23 @@ def test_best_wavelength_without_interior_optimum_raises():
         oned.best_wavelength(np.pi / 2)
     with pytest.raises(ValueError, match="bounds"):
         oned.best_wavelength(0.0, bounds=(5.0, 1.0))
+
+
+@pytest.mark.parametrize("lam, delta, sigma", [(5.0, 0.0, 1.0), (2.0, 2.0, 0.7), (30.0, np.pi, 3.0)])
+def test_periodic_relative_gain_is_the_wide_support_limit(lam, delta, sigma):
+    half_width = 50 * lam  # whole periods, far beyond the report's tails
+    ratio = oracle_gain(lam, delta, 0.0, sigma, half_width) / quad(
+        lambda x: stats.norm.pdf(x, 0.0, sigma) / (2 * half_width), -half_width, half_width, 0.0
+    )
+    assert oned.periodic_relative_gain(lam, delta, sigma) == pytest.approx(ratio, rel=1e-6, abs=1e-9)
+
+
+@pytest.mark.parametrize("half_width", [2.0, 4.0, 11.0])
+def test_normaliser_min_wavelength_minimises_the_quadrature_normaliser(half_width):
+    grid = np.linspace(0.5 * half_width, 3 * half_width, 2001)
+    norms = [quad(lambda x, lam=lam: raw_terrain(x, lam, 0.0), -half_width, half_width) for lam in grid]
+    lam = oned.normaliser_min_wavelength(half_width)
+    assert abs(lam - grid[int(np.argmin(norms))]) <= grid[1] - grid[0]
 
 
 @pytest.mark.parametrize(
