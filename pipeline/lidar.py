@@ -1,0 +1,198 @@
+"""LiDAR point clouds (PLY, PCD, XYZ) -> ground elevation and slope grids, usable instead of a DEM.
+
+Points are (x, y, z) in metres in the grid's CRS (point-cloud files carry no CRS; reproject before).
+Per cell, the elevation is taken at the cell centre from the points falling in the cell:
+
+- ``"plane"`` (default): least-squares plane through the cell's points, evaluated at the centre; exact
+  for planar ground and unbiased by where in the cell the points happen to lie (a plain mean is not:
+  on a 20 % slope, points clustered in one half of a 20 m cell shift the mean by a metre). Cells
+  with fewer than 3 points, or collinear ones, use the mean.
+- ``"mean"``: mean z.
+- ``"lowest"``: the ``percentile``-th lowest z (default 10), a simple ground filter for vegetated clouds.
+
+Slope comes from open3d's normals (local PCA over neighbours within ``normal_radius``), oriented
+upward; per cell the unit normals are averaged and the slope is the angle of the mean normal from
+vertical, in degrees. Averaging normals rather than angles keeps noise on flat ground from
+reading as slope (angles are >= 0, so their mean is biased upward).
+
+Cells without points are filled by linear interpolation (Delaunay) from the filled cells around the
+gaps, and from the nearest filled cell outside their convex hull; ``count`` tells which cells had data.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage
+from scipy.interpolate import griddata
+from scipy.spatial import QhullError
+
+from pipeline.grid import Grid
+
+SUFFIXES = (".ply", ".pcd", ".xyz")
+
+
+class LidarError(ValueError):
+    """A point cloud that cannot be read or does not cover the grid."""
+
+
+@dataclass(frozen=True)
+class LidarSurface:
+    """Gridded ground from a point cloud: ``elevation`` (m), ``slope`` (degrees), ``count`` (points per cell)."""
+
+    grid: Grid
+    elevation: np.ndarray
+    slope: np.ndarray
+    count: np.ndarray
+
+
+def _o3d():
+    try:
+        import open3d
+    except ImportError as exc:  # the optional "lidar" extra
+        raise LidarError("LiDAR input needs open3d: pip install 'terrain-prior-tracker[lidar]'") from exc
+    return open3d
+
+
+def read_point_cloud(path: str | Path) -> np.ndarray:
+    """(N, 3) float64 x, y, z (metres) from a PLY, PCD or XYZ file; LidarError naming the file on failure."""
+    path = Path(path)
+    if path.suffix.lower() not in SUFFIXES:
+        raise LidarError(f"{path}: unsupported point-cloud format {path.suffix!r}; use one of {SUFFIXES}")
+    if not path.is_file():
+        raise LidarError(f"{path}: point-cloud file not found")
+    o3d = _o3d()
+    # open3d reports unreadable files only as a printed warning and an empty cloud.
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        cloud = o3d.io.read_point_cloud(str(path), remove_nan_points=False, remove_infinite_points=False)
+    points = np.asarray(cloud.points, dtype=np.float64)
+    if points.shape[0] == 0:
+        raise LidarError(f"{path}: no points read (the file is empty, corrupt, or not a {path.suffix} point cloud)")
+    if path.suffix.lower() == ".xyz":
+        # open3d skips XYZ lines it cannot parse; a partly garbled file must not pass silently.
+        with path.open("rb") as f:
+            lines = sum(1 for line in f if line.strip() and not line.lstrip().startswith(b"#"))
+        if lines != points.shape[0]:
+            raise LidarError(f"{path}: {lines - points.shape[0]} of {lines} lines are not 'x y z' numbers")
+    bad = ~np.isfinite(points).all(axis=1)
+    if bad.any():
+        raise LidarError(f"{path}: {bad.sum()} points have NaN or infinite coordinates, first at index {np.argmax(bad)}")
+    return points
+
+
+def _cells(points: np.ndarray, grid: Grid) -> tuple[np.ndarray, np.ndarray]:
+    """Flat cell index of each point inside the grid, and the mask of those points."""
+    u, v = grid.to_pixel(points[:, 0], points[:, 1])
+    inside = (u >= 0) & (u < grid.width) & (v >= 0) & (v < grid.height)
+    return v[inside].astype(np.intp) * grid.width + u[inside].astype(np.intp), inside
+
+
+def _fill_gaps(values: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """Fill cells where ``known`` is False: linear between the known cells on the gaps' rims, else nearest."""
+    if known.all():
+        return values
+    out = values.copy()
+    gaps = ~known
+    rim = known & ndimage.binary_dilation(gaps, structure=np.ones((3, 3), dtype=bool))
+    rr, rc = np.nonzero(rim)
+    gr, gc = np.nonzero(gaps)
+    if rr.size >= 3:
+        try:
+            out[gr, gc] = griddata((rr, rc), values[rr, rc], (gr, gc), method="linear")
+        except QhullError:  # rim cells all on one line: no triangles to interpolate in
+            out[gr, gc] = np.nan
+    else:
+        out[gr, gc] = np.nan
+    missing = np.isnan(out)
+    if missing.any():
+        _, (ir, ic) = ndimage.distance_transform_edt(missing, return_indices=True)
+        out[missing] = out[ir[missing], ic[missing]]
+    return out
+
+
+def _cell_elevation(points: np.ndarray, cell: np.ndarray, grid: Grid, method: str, percentile: float) -> np.ndarray:
+    n_cells = grid.height * grid.width
+    count = np.bincount(cell, minlength=n_cells).astype(np.float64)
+    z = points[:, 2]
+    z_ref = float(z.mean())  # centre z so the normal equations stay well conditioned at any altitude
+    zc = z - z_ref
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.bincount(cell, zc, minlength=n_cells) / count
+    if method == "mean":
+        return mean + z_ref
+    if method == "lowest":
+        order = np.lexsort((z, cell))
+        start = np.concatenate(([0], np.cumsum(count)[:-1])).astype(np.intp)
+        pick = start + np.floor(percentile / 100.0 * np.maximum(count - 1, 0)).astype(np.intp)
+        out = np.full(n_cells, np.nan)
+        has = count > 0
+        out[has] = z[order[pick[has]]]
+        return out
+    # "plane": z = z0 + gx*u + gy*v with (u, v) from the cell centre; z0 is the answer.
+    rows, cols = np.divmod(cell, grid.width)
+    u = points[:, 0] - (grid.transform.c + (cols + 0.5) * grid.dx)
+    v = points[:, 1] - (grid.transform.f - (rows + 0.5) * grid.dy)
+
+    def s(w):
+        return np.bincount(cell, w, minlength=n_cells)
+
+    su, sv, suu, suv, svv = s(u), s(v), s(u * u), s(u * v), s(v * v)
+    a = np.stack(
+        [np.stack([count, su, sv], -1), np.stack([su, suu, suv], -1), np.stack([sv, suv, svv], -1)], -2
+    )
+    b = np.stack([s(zc), s(u * zc), s(v * zc)], -1)
+    det = np.linalg.det(a)
+    # Singular when the points are (nearly) collinear: compare with a well-spread cell's determinant.
+    ok = (count >= 3) & (np.abs(det) > 1e-8 * count**3 * (grid.dx * grid.dy) ** 2 / 144.0)
+    out = mean.copy()
+    if ok.any():
+        out[ok] = np.linalg.solve(a[ok], b[ok][..., None])[:, 0, 0]
+    return out + z_ref
+
+
+def _cell_slope(points: np.ndarray, inside: np.ndarray, cell: np.ndarray, grid: Grid, radius: float, max_nn: int) -> np.ndarray:
+    o3d = _o3d()
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=max_nn))
+    cloud.orient_normals_to_align_with_direction(np.array([0.0, 0.0, 1.0]))
+    normals = np.asarray(cloud.normals)[inside]
+    n_cells = grid.height * grid.width
+    mean_n = np.stack([np.bincount(cell, normals[:, k], minlength=n_cells) for k in range(3)], -1)
+    horizontal = np.hypot(mean_n[:, 0], mean_n[:, 1])
+    out = np.degrees(np.arctan2(horizontal, mean_n[:, 2]))
+    out[np.bincount(cell, minlength=n_cells) == 0] = np.nan
+    return out
+
+
+def lidar_surface(
+    source: str | Path | np.ndarray,
+    grid: Grid,
+    method: str = "plane",
+    percentile: float = 10.0,
+    normal_radius: float | None = None,
+    max_nn: int = 30,
+) -> LidarSurface:
+    """Ground elevation (m) and slope (degrees) on ``grid`` from a point-cloud file or an (N, 3) array.
+
+    ``method``: "plane", "mean" or "lowest" (see the module docstring). ``normal_radius`` (metres) is the
+    neighbourhood for open3d's normals, default 1.5 cell sizes; ``max_nn`` caps the neighbours used.
+    """
+    name = str(source) if not isinstance(source, np.ndarray) else "point array"
+    points = read_point_cloud(source) if not isinstance(source, np.ndarray) else np.asarray(source, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise LidarError(f"{name}: points must be an (N, 3) array of x, y, z, got shape {points.shape}")
+    if method not in ("plane", "mean", "lowest"):
+        raise LidarError(f"method must be 'plane', 'mean' or 'lowest', got {method!r}")
+    if not 0 <= percentile <= 100:
+        raise LidarError(f"percentile must be in [0, 100], got {percentile}")
+    cell, inside = _cells(points, grid)
+    if cell.size == 0:
+        raise LidarError(f"{name}: none of its {points.shape[0]} points falls on the grid {grid.bounds}")
+    count = np.bincount(cell, minlength=grid.height * grid.width).reshape(grid.shape)
+    radius = 1.5 * max(grid.dx, grid.dy) if normal_radius is None else float(normal_radius)
+    elevation = _cell_elevation(points[inside], cell, grid, method, percentile).reshape(grid.shape)
+    slope = _cell_slope(points, inside, cell, grid, radius, max_nn).reshape(grid.shape)
+    known = count > 0
+    return LidarSurface(grid, _fill_gaps(elevation, known), _fill_gaps(slope, known), count)
