@@ -1,0 +1,89 @@
+"""``terrain-prior``: build feature grids and priors from a region config, and draw them.
+
+A thin argparse layer: one function per subcommand, each parses nothing itself and calls the library.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+from pipeline.build import build_features, build_prior, write_features
+from pipeline.config import load_config
+from pipeline.likelihood import LikelihoodModel
+from pipeline.plots import plot_features, plot_prior
+from pipeline.prior import PriorError, TerrainPrior
+
+
+def cmd_features(args: argparse.Namespace) -> None:
+    config = load_config(args.region)
+    paths = write_features(build_features(config, progress=not args.quiet), args.out)
+    print(f"wrote {len(paths)} feature GeoTIFFs to {args.out}: {', '.join(p.name for p in paths)}")
+
+
+def cmd_build(args: argparse.Namespace) -> None:
+    config = load_config(args.region)
+    model = LikelihoodModel.read_toml(args.model) if args.model else config.model
+    if model is None:
+        raise PriorError(f"{config.path}: no [likelihood.<feature>] tables; add them or pass --model")
+    stack = build_features(config, progress=not args.quiet)
+    provenance = {"region": config.name, "config": str(config.path)}
+    if args.model:
+        provenance["model"] = str(Path(args.model).resolve())
+    prior = build_prior(stack, model, provenance)
+    prior.write(args.out)
+    print(f"wrote {args.out} ({prior.grid.height} x {prior.grid.width} cells of {prior.grid.dx:g} m)")
+
+
+def cmd_show(args: argparse.Namespace) -> None:
+    prior = TerrainPrior.read(args.prior)
+    plot_prior(prior, args.png)
+    print(f"wrote {args.png}")
+    if args.features_png:
+        region = args.region or prior.model.get("provenance", {}).get("config")
+        if region is None:
+            raise PriorError(f"{args.prior}: records no region config; pass --region REGION.toml for --features-png")
+        plot_features(build_features(load_config(region), progress=not args.quiet), args.features_png)
+        print(f"wrote {args.features_png}")
+
+
+def make_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="terrain-prior", description=__doc__.splitlines()[0])
+    parser.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("features", help="write one GeoTIFF per feature of a region config")
+    p.add_argument("region", type=Path, help="region config (TOML)")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.set_defaults(func=cmd_features)
+
+    p = sub.add_parser("build", help="build a prior (prior.tif + summed-area tables beside it)")
+    p.add_argument("region", type=Path, help="region config (TOML)")
+    p.add_argument("--model", type=Path, help="likelihood tables (TOML) instead of the config's [likelihood.*]")
+    p.add_argument("--out", type=Path, required=True, help="prior GeoTIFF to write")
+    p.set_defaults(func=cmd_build)
+
+    p = sub.add_parser("show", help="draw a prior (and its features) as PNG maps")
+    p.add_argument("prior", type=Path, help="prior GeoTIFF written by build")
+    p.add_argument("--png", type=Path, required=True, help="prior map to write")
+    p.add_argument("--features-png", type=Path, help="feature maps to write (rebuilds the features)")
+    p.add_argument("--region", type=Path, help="region config for --features-png (default: the one the prior records)")
+    p.set_defaults(func=cmd_show)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = make_parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="terrain-prior: %(message)s")
+    try:
+        args.func(args)
+    except ValueError as exc:  # every input problem is a ValueError naming the file, layer or value
+        print(f"terrain-prior: error: {exc}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
