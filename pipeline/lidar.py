@@ -3,10 +3,11 @@
 Points are (x, y, z) in metres in the grid's CRS (point-cloud files carry no CRS; reproject before).
 Per cell, the elevation is taken at the cell centre from the points falling in the cell:
 
-- ``"plane"`` (default): least-squares plane through the cell's points, evaluated at the centre; exact
-  for planar ground and unbiased by where in the cell the points happen to lie (a plain mean is not:
-  on a 20 % slope, points clustered in one half of a 20 m cell shift the mean by a metre). Cells
-  with fewer than 3 points, or collinear ones, use the mean.
+- ``"plane"`` (default): the mean point of the cell moved to the cell centre along the plane of the
+  cell's mean normal, ``z = mean_z - (nx (xc - mean_x) + ny (yc - mean_y)) / nz``; exact for planar
+  ground, second-order accurate on curved ground, works with a single point, and unbiased by where in
+  the cell the points lie (a plain mean is not: on a 20 % slope, points clustered in one half of a
+  20 m cell shift the mean by a metre).
 - ``"mean"``: mean z.
 - ``"lowest"``: the ``percentile``-th lowest z (default 10), a simple ground filter for vegetated clouds.
 
@@ -112,57 +113,23 @@ def _fill_gaps(values: np.ndarray, known: np.ndarray) -> np.ndarray:
     return out
 
 
-def _cell_elevation(points: np.ndarray, cell: np.ndarray, grid: Grid, method: str, percentile: float) -> np.ndarray:
-    n_cells = grid.height * grid.width
-    count = np.bincount(cell, minlength=n_cells).astype(np.float64)
-    z = points[:, 2]
-    z_ref = float(z.mean())  # centre z so the normal equations stay well conditioned at any altitude
-    zc = z - z_ref
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean = np.bincount(cell, zc, minlength=n_cells) / count
-    if method == "mean":
-        return mean + z_ref
-    if method == "lowest":
-        order = np.lexsort((z, cell))
-        start = np.concatenate(([0], np.cumsum(count)[:-1])).astype(np.intp)
-        pick = start + np.floor(percentile / 100.0 * np.maximum(count - 1, 0)).astype(np.intp)
-        out = np.full(n_cells, np.nan)
-        has = count > 0
-        out[has] = z[order[pick[has]]]
-        return out
-    # "plane": z = z0 + gx*u + gy*v with (u, v) from the cell centre; z0 is the answer.
-    rows, cols = np.divmod(cell, grid.width)
-    u = points[:, 0] - (grid.transform.c + (cols + 0.5) * grid.dx)
-    v = points[:, 1] - (grid.transform.f - (rows + 0.5) * grid.dy)
-
-    def s(w):
-        return np.bincount(cell, w, minlength=n_cells)
-
-    su, sv, suu, suv, svv = s(u), s(v), s(u * u), s(u * v), s(v * v)
-    a = np.stack(
-        [np.stack([count, su, sv], -1), np.stack([su, suu, suv], -1), np.stack([sv, suv, svv], -1)], -2
-    )
-    b = np.stack([s(zc), s(u * zc), s(v * zc)], -1)
-    det = np.linalg.det(a)
-    # Singular when the points are (nearly) collinear: compare with a well-spread cell's determinant.
-    ok = (count >= 3) & (np.abs(det) > 1e-8 * count**3 * (grid.dx * grid.dy) ** 2 / 144.0)
-    out = mean.copy()
-    if ok.any():
-        out[ok] = np.linalg.solve(a[ok], b[ok][..., None])[:, 0, 0]
-    return out + z_ref
-
-
-def _cell_slope(points: np.ndarray, inside: np.ndarray, cell: np.ndarray, grid: Grid, radius: float, max_nn: int) -> np.ndarray:
+def _upward_normals(points: np.ndarray, radius: float, max_nn: int) -> np.ndarray:
+    """Unit normals (N, 3) from open3d's local PCA, flipped to point up (+z)."""
     o3d = _o3d()
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=max_nn))
     cloud.orient_normals_to_align_with_direction(np.array([0.0, 0.0, 1.0]))
-    normals = np.asarray(cloud.normals)[inside]
-    n_cells = grid.height * grid.width
-    mean_n = np.stack([np.bincount(cell, normals[:, k], minlength=n_cells) for k in range(3)], -1)
-    horizontal = np.hypot(mean_n[:, 0], mean_n[:, 1])
-    out = np.degrees(np.arctan2(horizontal, mean_n[:, 2]))
-    out[np.bincount(cell, minlength=n_cells) == 0] = np.nan
+    return np.asarray(cloud.normals)
+
+
+def _lowest(z: np.ndarray, cell: np.ndarray, count: np.ndarray, percentile: float) -> np.ndarray:
+    """Per cell, the ``percentile``-th lowest z (numpy's "lower" percentile); NaN for empty cells."""
+    order = np.lexsort((z, cell))
+    start = np.concatenate(([0], np.cumsum(count)[:-1]))
+    pick = start + np.floor(percentile / 100.0 * np.maximum(count - 1, 0)).astype(np.intp)
+    out = np.full(count.shape, np.nan)
+    has = count > 0
+    out[has] = z[order[pick[has]]]
     return out
 
 
@@ -190,9 +157,32 @@ def lidar_surface(
     cell, inside = _cells(points, grid)
     if cell.size == 0:
         raise LidarError(f"{name}: none of its {points.shape[0]} points falls on the grid {grid.bounds}")
-    count = np.bincount(cell, minlength=grid.height * grid.width).reshape(grid.shape)
+    n_cells = grid.height * grid.width
+    count = np.bincount(cell, minlength=n_cells)
     radius = 1.5 * max(grid.dx, grid.dy) if normal_radius is None else float(normal_radius)
-    elevation = _cell_elevation(points[inside], cell, grid, method, percentile).reshape(grid.shape)
-    slope = _cell_slope(points, inside, cell, grid, radius, max_nn).reshape(grid.shape)
-    known = count > 0
-    return LidarSurface(grid, _fill_gaps(elevation, known), _fill_gaps(slope, known), count)
+    # Normals from all points, so cells on the grid's edge still get full neighbourhoods.
+    normals = _upward_normals(points, radius, max_nn)[inside]
+    pts = points[inside]
+    z_ref = float(pts[:, 2].mean())  # keeps per-cell sums precise at any altitude
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.stack(
+            [np.bincount(cell, w, minlength=n_cells) for w in (pts[:, 0], pts[:, 1], pts[:, 2] - z_ref)], -1
+        ) / count[:, None]
+        normal = np.stack([np.bincount(cell, normals[:, k], minlength=n_cells) for k in range(3)], -1)
+        slope = np.degrees(np.arctan2(np.hypot(normal[:, 0], normal[:, 1]), normal[:, 2]))
+        if method == "plane":
+            # Move the cells' mean point to the centre along the plane of the mean normal.
+            xc, yc = (a.ravel() for a in grid.cell_centres())
+            nz = np.maximum(normal[:, 2], 1e-9 * np.linalg.norm(normal, axis=1))
+            elevation = mean[:, 2] - (normal[:, 0] * (xc - mean[:, 0]) + normal[:, 1] * (yc - mean[:, 1])) / nz + z_ref
+        elif method == "mean":
+            elevation = mean[:, 2] + z_ref
+        else:
+            elevation = _lowest(pts[:, 2], cell, count, percentile)
+    known = (count > 0).reshape(grid.shape)
+    return LidarSurface(
+        grid,
+        _fill_gaps(elevation.reshape(grid.shape), known),
+        _fill_gaps(slope.reshape(grid.shape), known),
+        count.reshape(grid.shape),
+    )
