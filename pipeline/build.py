@@ -54,9 +54,10 @@ def _distance_feature(spec: FeatureSpec, layers: _Layers, grid) -> Feature:
 def _slope_feature(spec: FeatureSpec, layers: _Layers, grid) -> Feature:
     layer = layers.config.layers[spec.layer]
     if layer.kind == "pointcloud":
-        from pipeline.lidar import lidar_slope_deg, read_point_cloud  # open3d is an optional extra
+        from pipeline.lidar import lidar_surface  # open3d is an optional extra
 
-        slope = lidar_slope_deg(read_point_cloud(layer.path), grid)
+        # a point cloud carries no CRS: its x, y are taken to be in the grid CRS (metres)
+        slope = lidar_surface(layer.path, grid).slope
     else:
         slope = slope_deg(read_dem(layer, grid), grid.dx, grid.dy)
     return Feature(spec.name, slope, "continuous", units="deg")
