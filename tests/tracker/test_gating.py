@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.stats import chi2
 
-from tests.tracker.gating_oracle import assert_same_pairs, brute_force, random_covs
+from tests.tracker.test_gating_oracle import assert_same_pairs, brute_force, random_covs
 from tracker.gating import gate, gate_threshold
 
 

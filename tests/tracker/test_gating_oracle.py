@@ -68,3 +68,20 @@ def assert_same_pairs(t_idx, r_idx, d2, limit, rtol=1e-7):
     assert not extra.any(), f"false positives at {np.argwhere(extra)[:5]}"
     key = t_idx * nr + r_idx
     assert np.all(np.diff(key) > 0), "pairs not sorted by (track, report) or duplicated"
+
+
+def test_oracle_against_closed_forms():
+    """The oracle itself: identity covariances give d^2 = |dX|^2 / 2; a CV track moved by dt
+    with q gives position variance 1 + dt^2 + q dt^3 / 3 per axis (unit P)."""
+    rng = np.random.default_rng(0)
+    tm, rm = rng.normal(size=(3, 2)), rng.normal(size=(4, 2))
+    eye = np.tile(np.eye(2), (4, 1, 1))
+    d2, limit = brute_force(tm, eye[:3], rm, eye, gamma=1.0)
+    np.testing.assert_allclose(d2, ((rm[None] - tm[:, None]) ** 2).sum(-1) / 2)
+    assert np.all(limit == 1.0)
+    state = np.array([[0.0, 0.0, 2.0, -1.0]])
+    dt, q = 3.0, 0.5
+    report_cov = 1e-300 * np.eye(2)[None]  # a point report
+    d2, _ = brute_force(state, np.eye(4)[None], np.array([[6.0, -2.0]]), report_cov, gamma=1.0,
+                        report_times=np.array([dt]), track_times=0.0, q=q)
+    np.testing.assert_allclose(d2[0, 0], 1.0 / (1 + dt**2 + q * dt**3 / 3))
