@@ -1,0 +1,395 @@
+"""PriorEstimator: per-feature likelihoods fitted to past target locations (scikit-learn style).
+
+Targets are an inhomogeneous Poisson process with intensity λ(x) = exp(β₀ + Σ_t log r_t(F_t(x)));
+``method="ml"`` maximises its (penalised) likelihood jointly over all terms on sufficient statistics
+(:mod:`pipeline.sufficient`, :mod:`pipeline.poisson`); ``method="naive"`` fits each term alone on
+its marginal (for a categorical term: the share of points over the share of area per category),
+which is the ML fit only when the features are independent over the grid.
+
+Example::
+
+    est = PriorEstimator(template=config.model).fit(stack, points_xy_m)
+    est.likelihoods_["road_distance"]   # {"rmd": 97.1, "mv": 0.11}
+    est.model_.write_toml("model.toml")  # what `terrain-prior build --model` reads
+    est.score(test_xy_m)                 # mean log density, nats per point (density per m²)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+import warnings
+from functools import cached_property
+
+import numpy as np
+from sklearn.base import BaseEstimator
+
+from pipeline.features import Feature, FeatureStack
+from pipeline.kde import log_kde_feature
+from pipeline.likelihood import (
+    BinnedLikelihood,
+    CategoricalLikelihood,
+    LikelihoodModel,
+    RoadDistanceLikelihood,
+)
+from pipeline.poisson import FitResult, Objective, fit, term_params
+from pipeline.prior import TerrainPrior
+from pipeline.sufficient import (
+    CONTINUOUS_FORMS,
+    DISCRETE_FORMS,
+    NODATA_INDEX,
+    CellStats,
+    PointStats,
+    Term,
+    cell_stats,
+    point_stats,
+    with_range,
+)
+
+SPATIAL = "spatial_kde"
+"""Name of the hybrid's learned spatial feature (log of a KDE of the training points, log per m²)."""
+Z95 = 1.959963984540054
+
+
+def _template_value(table: CategoricalLikelihood, feature: Feature, code: int) -> float | None:
+    v = table.values.get(feature.label(code), table.values.get(str(int(code))))
+    return None if v is None else float(v)
+
+
+def make_terms(
+    stack: FeatureStack,
+    template: LikelihoodModel | None,
+    features: tuple[str, ...] | None,
+    flexible: dict[str, list[float]] | None,
+    bin_width: float | None,
+    n_bins: int,
+) -> tuple[list[Term], list[dict]]:
+    """Terms to fit and their start values, following the template's forms and structural zeros.
+
+    Without a template: categorical features -> categorical terms, continuous features in metres ->
+    the road form, other continuous features -> ``n_bins`` quantile bins. ``flexible`` replaces a
+    feature's form by bins with these left edges (feature units).
+    """
+    names = list(features or (template.terms if template else [f.name for f in stack]))
+    flexible = flexible or {}
+    terms, starts = [], []
+    for name in names:
+        f = stack[name]
+        table = template.terms.get(name) if template else None
+        nodata = float(getattr(table, "nodata", 1.0))
+        if f.kind == "categorical":
+            if table is not None and not isinstance(table, CategoricalLikelihood):
+                raise ValueError(f"feature {name!r} is categorical but its template table is {type(table).__name__}")
+            codes = tuple(int(c) for c in f.codes())
+            vals = [(_template_value(table, f, c) if table else None) for c in codes]
+            zeros = frozenset(k for k, v in enumerate(vals) if v == 0)
+            logr = np.array([np.log(v) if v else 0.0 for v in vals])
+            terms.append(Term(name, "categorical", tuple(f.label(c) for c in codes), codes, zeros=zeros, nodata=nodata))
+            starts.append({"logr": logr})
+            continue
+        if name in flexible or isinstance(table, BinnedLikelihood) or (table is None and f.units != "m"):
+            if name in flexible:
+                edges, vals = list(flexible[name]), [None] * len(flexible[name])
+            elif isinstance(table, BinnedLikelihood):
+                edges, vals = list(table.edges), list(table.values)
+            else:
+                finite = f.values[np.isfinite(f.values)]
+                edges = list(np.unique(np.quantile(finite, np.linspace(0, 1, n_bins + 1)[:-1])))
+                vals = [None] * len(edges)
+            levels = tuple(f"{e:g}" for e in edges)
+            zeros = frozenset(k for k, v in enumerate(vals) if v == 0)
+            logr = np.array([np.log(v) if v else 0.0 for v in vals])
+            terms.append(Term(name, "binned", levels, edges=tuple(float(e) for e in edges), zeros=zeros, nodata=nodata))
+            starts.append({"logr": logr})
+            continue
+        width = bin_width or stack.grid.dx / 4.0
+        term = with_range(Term(name, "road", bin_width=width, nodata=nodata), f.values)
+        terms.append(term)
+        starts.append({"rmd": table.rmd, "mv": table.mv} if isinstance(table, RoadDistanceLikelihood) else {})
+    return terms, starts
+
+
+class PriorEstimator(BaseEstimator):
+    """Fit per-feature likelihoods r_t to past target points (metres, the grid's CRS).
+
+    Parameters
+    ----------
+    template : hand-set :class:`LikelihoodModel` giving each feature's form (categorical, road,
+        binned edges), structural zeros (values 0, fixed, not fitted) and start values.
+    features : feature names to use (default: the template's, else all).
+    method : ``"ml"`` (joint Poisson-process maximum likelihood) or ``"naive"`` (each term on its marginal).
+    penalty_sd : σ of the Gaussian prior on each log-likelihood (and on the hybrid exponent), nats.
+        Default 3: a factor e³ ≈ 20 is one σ, so the penalty only bites for levels with few points.
+    smooth_sd : τ of the Gaussian prior on differences of log r between adjacent bins of a binned term.
+    on_zero : points on a structural zero: ``"drop"`` them (counted) or ``"soften"`` every zero to ``soften``.
+    soften : likelihood (relative to the reference level) given to structural zeros when softened.
+    flexible : feature -> left bin edges: fit that feature as bins instead of the road form.
+    spatial_bandwidth : metres; when set, the hybrid: one more term exp(γ·log KDE of the training
+        points) with γ fitted (leave-one-out values at the training points).
+    bin_width : fine-bin width of continuous terms in feature units (default: a quarter cell).
+    n_bins : quantile bins of continuous non-distance features without a template.
+    """
+
+    def __init__(
+        self,
+        template: LikelihoodModel | None = None,
+        features: tuple[str, ...] | None = None,
+        method: str = "ml",
+        penalty_sd: float = 3.0,
+        smooth_sd: float = 1.0,
+        on_zero: str = "drop",
+        soften: float = 1e-3,
+        flexible: dict[str, list[float]] | None = None,
+        spatial_bandwidth: float | None = None,
+        bin_width: float | None = None,
+        n_bins: int = 8,
+    ) -> None:
+        self.template = template
+        self.features = features
+        self.method = method
+        self.penalty_sd = penalty_sd
+        self.smooth_sd = smooth_sd
+        self.on_zero = on_zero
+        self.soften = soften
+        self.flexible = flexible
+        self.spatial_bandwidth = spatial_bandwidth
+        self.bin_width = bin_width
+        self.n_bins = n_bins
+
+    # ----------------------------------------------------------------------------------- fit
+    def _check_params(self) -> None:
+        if self.method not in ("ml", "naive"):
+            raise ValueError(f"method must be 'ml' or 'naive', got {self.method!r}")
+        if self.on_zero not in ("drop", "soften"):
+            raise ValueError(f"on_zero must be 'drop' or 'soften', got {self.on_zero!r}")
+        if not (self.penalty_sd > 0 and self.smooth_sd >= 0):
+            raise ValueError(f"penalty_sd must be > 0 and smooth_sd >= 0, got {self.penalty_sd}, {self.smooth_sd}")
+        if self.on_zero == "soften" and not 0 < self.soften < 1:
+            raise ValueError(f"soften must be in (0, 1), got {self.soften}")
+
+    def fit(self, features: FeatureStack, points: np.ndarray) -> PriorEstimator:
+        """Fit to points (N, 2) in metres in the grid's CRS. Points off the grid are dropped and
+        counted; points on structural zeros are dropped or the zeros softened (``on_zero``)."""
+        self._check_params()
+        t0 = time.perf_counter()
+        pts = np.asarray(points, dtype=np.float64)
+        terms, starts = make_terms(features, self.template, self.features, self.flexible, self.bin_width, self.n_bins)
+        stack = features
+        loo = None
+        if self.spatial_bandwidth:
+            inside = _inside(features, pts)
+            logk, loo_in = log_kde_feature(features.grid, pts[inside], self.spatial_bandwidth)
+            loo = np.full(len(pts), np.nan)
+            loo[inside] = loo_in
+            stack = FeatureStack(features.grid, dict(features.features))
+            stack.add(Feature(SPATIAL, logk, "continuous", "log(1/m2)"))
+            terms.append(with_range(Term(SPATIAL, "loglinear", bin_width=0.01), logk))
+            starts.append({"gamma": 0.5})
+        cells = cell_stats(stack, tuple(terms))
+        t_pass = time.perf_counter() - t0
+        terms = [_with_reference(t, cells.level_area(k)) for k, t in enumerate(terms)]
+        cells = dataclasses.replace(cells, terms=tuple(terms))
+        pstats = point_stats(stack, tuple(terms), pts)
+        if loo is not None:
+            pstats.value[:, -1] = loo
+        soften = self.soften if self.on_zero == "soften" else None
+        params = [
+            term_params(t, cells.level_area(k), soften, _shift(starts[k], t), cells.bin_value(k) if t.form in CONTINUOUS_FORMS else None)
+            for k, t in enumerate(terms)
+        ]
+        keep, counts = _usable(pstats, params, soften is not None)
+        used = pstats.subset(keep)
+        if self.method == "ml":
+            results = [fit(Objective(cells, used, params, list(range(len(terms))), self.penalty_sd, self.smooth_sd))]
+        else:
+            results = [fit(Objective(cells, used, params, [k], self.penalty_sd, self.smooth_sd)) for k in range(len(terms))]
+        x = np.concatenate([r.x for r in results])
+        cov = _block_diag([r.cov for r in results])
+        full = Objective(cells, used, params, list(range(len(terms))), self.penalty_sd, self.smooth_sd)
+        self.stack_ = stack
+        self.terms_ = terms
+        self.params_ = params
+        self.theta_ = x
+        self.cov_ = cov
+        self.cell_stats_ = cells
+        self.point_stats_ = used
+        self.n_points_ = len(pts)
+        self.n_used_ = int(keep.sum())
+        self.n_off_grid_ = counts["off_grid"]
+        self.n_on_zero_ = counts["on_zero"]
+        self.on_zero_detail_ = counts["detail"]
+        self.loglik_ = full.loglik(x)
+        self.penalty_ = full.penalty(x)[0]
+        self.fit_results_ = results
+        self.fit_seconds_ = time.perf_counter() - t0
+        self.pass_seconds_ = t_pass
+        self._describe(full)
+        self.__dict__.pop("prior_", None)
+        if counts["off_grid"] or counts["on_zero"]:
+            warnings.warn(
+                f"PriorEstimator.fit: {counts['off_grid']} of {len(pts)} points off the grid (dropped), "
+                f"{counts['on_zero']} on structural zeros {counts['detail']} "
+                f"({'dropped' if soften is None else f'zeros softened to {soften}'})",
+                stacklevel=2,
+            )
+        return self
+
+    def _describe(self, obj: Objective) -> None:
+        """likelihoods_, stderr_, ci_ and model_ from theta_ and cov_."""
+        se_all = np.sqrt(np.clip(np.diag(self.cov_), 0, None)) if self.cov_.size else np.zeros(0)
+        self.likelihoods_, self.stderr_, self.ci_ = {}, {}, {}
+        table_terms = {}
+        for j, (th, k) in enumerate(zip(obj.split(self.theta_), obj.active, strict=True)):
+            p = self.params_[k]
+            t = p.term
+            se = se_all[obj.offsets[j] : obj.offsets[j + 1]]
+            if t.form in DISCRETE_FORMS:
+                lut = p.lut(th)[:-1]
+                se_lvl = np.full(t.n_levels, np.nan)
+                se_lvl[p.free] = se
+                se_lvl[t.reference] = 0.0
+                vals = np.exp(lut)
+                lo, hi = np.exp(lut - Z95 * se_lvl), np.exp(lut + Z95 * se_lvl)
+                self.likelihoods_[t.feature] = dict(zip(t.levels, vals.tolist(), strict=True))
+                self.stderr_[t.feature] = dict(zip(t.levels, se_lvl.tolist(), strict=True))
+                self.ci_[t.feature] = {lv: (a, b) for lv, a, b in zip(t.levels, lo.tolist(), hi.tolist(), strict=True)}
+                if t.form == "categorical":
+                    table_terms[t.feature] = CategoricalLikelihood(dict(zip(t.levels, vals.tolist(), strict=True)), t.nodata)
+                else:
+                    table_terms[t.feature] = BinnedLikelihood(list(t.edges), vals.tolist(), t.nodata)
+            elif t.form == "road":
+                rmd, mv = float(np.exp(th[0])), float(th[1])
+                self.likelihoods_[t.feature] = {"rmd": rmd, "mv": mv}
+                self.stderr_[t.feature] = {"rmd": rmd * float(se[0]), "mv": float(se[1])}
+                self.ci_[t.feature] = {
+                    "rmd": (float(np.exp(th[0] - Z95 * se[0])), float(np.exp(th[0] + Z95 * se[0]))),
+                    "mv": (float(max(mv - Z95 * se[1], 0.0)), float(min(mv + Z95 * se[1], 1.0))),
+                }
+                table_terms[t.feature] = RoadDistanceLikelihood(rmd, mv, t.nodata)
+            else:
+                self.likelihoods_[t.feature] = {"gamma": float(th[0])}
+                self.stderr_[t.feature] = {"gamma": float(se[0])}
+                self.ci_[t.feature] = {"gamma": (float(th[0] - Z95 * se[0]), float(th[0] + Z95 * se[0]))}
+        meta = {
+            "learned": {
+                "method": self.method,
+                "n_points": self.n_points_,
+                "n_used": self.n_used_,
+                "n_off_grid": self.n_off_grid_,
+                "n_on_zero": self.n_on_zero_,
+                "on_zero": self.on_zero,
+                "penalty_sd": self.penalty_sd,
+                "smooth_sd": self.smooth_sd,
+                "loglik_nats": self.loglik_,
+            }
+        }
+        if self.spatial_bandwidth:
+            meta["learned"]["spatial_term"] = (
+                f"hybrid: also exp(gamma * log KDE(bandwidth {self.spatial_bandwidth:g} m)), "
+                f"gamma = {self.likelihoods_[SPATIAL]['gamma']:.4g}; not representable in this table"
+            )
+        self.model_ = LikelihoodModel(table_terms, meta)
+
+    # --------------------------------------------------------------------------- prediction
+    @cached_property
+    def prior_(self) -> TerrainPrior:
+        """The fitted prior (density per m²) on the training grid, built on first use."""
+        r = self.model_.evaluate(self.stack_)
+        if self.spatial_bandwidth:
+            r *= np.exp(self.likelihoods_[SPATIAL]["gamma"] * (self.stack_[SPATIAL].values - self.stack_[SPATIAL].values.max()))
+        return TerrainPrior.from_array(r, self.stack_.grid, self.model_.to_dict())
+
+    def log_density(self, points: np.ndarray) -> np.ndarray:
+        """log p(x) per point (log per m²); −inf off the grid or on an unsoftened structural zero."""
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        with np.errstate(divide="ignore"):
+            return np.log(self.prior_.density_at(pts[:, 0], pts[:, 1]))
+
+    def score(self, points: np.ndarray) -> float:
+        """Mean log density per point (nats; density per m²) over points where it is positive;
+        points off the grid or on structural zeros are left out with a warning giving their count."""
+        ld = self.log_density(points)
+        ok = np.isfinite(ld)
+        if not ok.all():
+            warnings.warn(f"score: {int((~ok).sum())} of {len(ld)} points have zero density (off grid or on a structural zero); left out", stacklevel=2)
+        if not ok.any():
+            raise ValueError("score: every point has zero density under the fitted prior")
+        return float(ld[ok].mean())
+
+    def empirical(self) -> dict[str, dict]:
+        """Per term and level: share of the used points over share of the area (the naive ratio),
+        normalised like the fitted values (reference level 1), with counts and areas (m²)."""
+        out = {}
+        n = max(self.n_used_, 1)
+        for k, t in enumerate(self.terms_):
+            if t.form not in DISCRETE_FORMS and t.form != "road":
+                continue
+            idx = self.point_stats_.index[:, k]
+            area = self.cell_stats_.level_area(k)
+            cnt = np.bincount(idx[idx >= 0], minlength=t.n_levels).astype(float)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ratio = (cnt / n) / (area / self.cell_stats_.total_area)
+            if t.form in DISCRETE_FORMS:
+                ratio = ratio / ratio[t.reference] if ratio[t.reference] > 0 else ratio
+                out[t.feature] = {"levels": list(t.levels), "count": cnt.tolist(), "area_m2": area.tolist(), "ratio": ratio.tolist()}
+            else:
+                out[t.feature] = {"bin_lo": (t.lo + t.bin_width * np.arange(t.n_levels)).tolist(), "bin_width": t.bin_width,
+                                  "count": cnt.tolist(), "area_m2": area.tolist(), "ratio": ratio.tolist()}
+        return out
+
+
+# ------------------------------------------------------------------------------- helpers
+def _inside(stack: FeatureStack, pts: np.ndarray) -> np.ndarray:
+    u, v = stack.grid.to_pixel(pts[:, 0], pts[:, 1])
+    return (u >= 0) & (u < stack.grid.width) & (v >= 0) & (v < stack.grid.height)
+
+
+def _with_reference(term: Term, level_area: np.ndarray) -> Term:
+    """Discrete terms: the reference (r = 1) is the non-zero level with the most area."""
+    if term.form not in DISCRETE_FORMS:
+        return term
+    area = np.where([k in term.zeros for k in range(term.n_levels)], -1.0, level_area)
+    return dataclasses.replace(term, reference=int(np.argmax(area)))
+
+
+def _shift(start: dict, term: Term) -> dict:
+    """Start log-likelihoods relative to the reference level."""
+    if "logr" not in start:
+        return start
+    logr = start["logr"]
+    return {"logr": logr - logr[term.reference]}
+
+
+def _usable(pstats: PointStats, params, softened: bool) -> tuple[np.ndarray, dict]:
+    """Points to fit: on the grid and (unless softened) not on a structural zero; with counts."""
+    keep = pstats.inside.copy()
+    detail: dict[str, dict[str, int]] = {}
+    on_zero = np.zeros(len(keep), dtype=bool)
+    for k, p in enumerate(params):
+        t = p.term
+        if t.form not in DISCRETE_FORMS:
+            continue
+        idx = pstats.index[:, k]
+        z = np.isin(idx, sorted(t.zeros)) & pstats.inside
+        if t.nodata == 0:
+            z |= (idx == NODATA_INDEX) & pstats.inside
+        for lvl in np.unique(idx[z]):
+            name = "nodata" if lvl == NODATA_INDEX else t.levels[lvl]
+            detail.setdefault(t.feature, {})[name] = int((idx[z] == lvl).sum())
+        on_zero |= z
+    if not softened:
+        keep &= ~on_zero
+    return keep, {"off_grid": int((~pstats.inside).sum()), "on_zero": int(on_zero.sum()), "detail": detail}
+
+
+def _block_diag(blocks: list[np.ndarray]) -> np.ndarray:
+    n = sum(b.shape[0] for b in blocks)
+    out = np.zeros((n, n))
+    o = 0
+    for b in blocks:
+        out[o : o + b.shape[0], o : o + b.shape[0]] = b
+        o += b.shape[0]
+    return out
+
+
+__all__ = ["PriorEstimator", "make_terms", "SPATIAL", "CellStats", "FitResult"]

@@ -1,0 +1,291 @@
+"""Penalised inhomogeneous-Poisson log-likelihood of points on sufficient statistics, and its fit.
+
+For points x_1..x_n and r(x) = Π_t r_t(x), the normalised-density log-likelihood is
+ℓ(θ) = Σ_i log r(x_i) − n log Σ_c A_c r(c), the Poisson process likelihood with the intercept
+profiled out. Parameters per term (:class:`TermParams`): log r of each free level of a discrete
+term (reference level fixed at 0, structural zeros fixed), (log rmd, mv) for the road form, γ for
+a log-linear term. The penalty is a Gaussian prior: ½ Σ θ²/σ² on log-likelihoods and exponents
+(σ = ``penalty_sd``) plus ½ Σ (Δ log r)²/τ² between adjacent bins of a binned term (τ = ``smooth_sd``).
+The fit minimises −(ℓ − penalty) with scipy's L-BFGS-B (bounds: rmd > 0, mv in (0, 1]);
+standard errors come from the inverse of the observed information, the Hessian of −(ℓ − penalty),
+by central differences of the analytic gradient.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import optimize
+
+from pipeline.likelihood import road_likelihood
+from pipeline.sufficient import DISCRETE_FORMS, CellStats, PointStats, Term
+
+MV_MIN = 1e-6
+"""Lower bound of mv in the fit (the form needs mv > 0)."""
+RMD_BOUNDS_M = (1e-2, 1e7)
+
+
+@dataclass
+class TermParams:
+    """How one term's parameters enter log r. ``fixed`` holds log r of every discrete level
+    (reference 0, structural zeros −inf or log of the softened value), overwritten at ``free``."""
+
+    term: Term
+    free: np.ndarray  # discrete: free level indices
+    fixed: np.ndarray  # discrete: log r per level, plus log(nodata) last
+    x0: np.ndarray
+    bounds: list[tuple[float | None, float | None]]
+    bin_value: np.ndarray | None = None  # continuous: area-weighted mean value per fine bin (cells)
+
+    @property
+    def size(self) -> int:
+        return len(self.x0)
+
+    def lut(self, theta: np.ndarray) -> np.ndarray:
+        """Discrete: log r per level with log(nodata) last, so index −1 (no data) picks it."""
+        out = self.fixed.copy()
+        out[self.free] = theta
+        return out
+
+    def logr(self, theta: np.ndarray, index: np.ndarray, value: np.ndarray | None) -> np.ndarray:
+        """log r per row; ``value=None`` (cells) evaluates continuous terms once per fine bin."""
+        t = self.term
+        if t.form in DISCRETE_FORMS:
+            return self.lut(theta)[index]
+        if value is None:
+            per_bin = self.logr(theta, np.zeros(len(self.bin_value), np.int64), self.bin_value)
+            return np.append(per_bin, np.log(t.nodata) if t.nodata > 0 else -np.inf)[index]
+        lognd = np.log(t.nodata) if t.nodata > 0 else -np.inf
+        if t.form == "road":
+            r = road_likelihood(value, np.exp(theta[0]), theta[1])
+            with np.errstate(divide="ignore"):
+                return np.where(index >= 0, np.log(r), lognd)
+        return np.where(index >= 0, theta[0] * np.nan_to_num(value), lognd)
+
+    def grad(self, theta: np.ndarray, index: np.ndarray, value: np.ndarray | None, weight: np.ndarray) -> np.ndarray:
+        """Σ_c weight_c ∂ log r_c / ∂θ over rows (cells combos or points; ``value=None`` as in :meth:`logr`)."""
+        t = self.term
+        ok = index >= 0
+        if t.form in DISCRETE_FORMS or value is None:
+            per_level = np.bincount(index[ok], weights=weight[ok], minlength=t.n_levels)
+            if t.form in DISCRETE_FORMS:
+                return per_level[self.free]
+            d, w = self.bin_value, per_level
+        else:
+            d, w = value[ok], weight[ok]
+        if t.form == "road":
+            rmd, mv = np.exp(theta[0]), theta[1]
+            z = d / rmd - 1.0
+            g = np.exp(-0.5 * z * z)
+            r = (1.0 - mv) * g + mv
+            d_logrmd = (1.0 - mv) * g * z * d / rmd / r
+            d_mv = (1.0 - g) / r
+            return np.array([np.dot(w, d_logrmd), np.dot(w, d_mv)])
+        return np.array([np.dot(w, d)])
+
+
+def term_params(
+    term: Term, level_area: np.ndarray, soften: float | None, start: dict | None = None, bin_value: np.ndarray | None = None
+) -> TermParams:
+    """Parameters of one term. Discrete levels with no area are fixed at log r = 0 (unidentified).
+
+    ``soften``: structural zeros get this fixed likelihood instead of 0. ``start``: initial values
+    (``{"logr": array per level}`` or ``{"rmd":, "mv":}`` or ``{"gamma":}``).
+    """
+    start = start or {}
+    if term.form in DISCRETE_FORMS:
+        n = term.n_levels
+        fixed = np.zeros(n + 1)
+        zeros = np.array(sorted(term.zeros), dtype=np.int64)
+        fixed[zeros] = np.log(soften) if soften else -np.inf
+        fixed[n] = np.log(term.nodata) if term.nodata > 0 else -np.inf
+        free = np.array(
+            [k for k in range(n) if k != term.reference and k not in term.zeros and level_area[k] > 0], dtype=np.int64
+        )
+        x0 = np.asarray(start.get("logr", np.zeros(n)), dtype=np.float64)[free]
+        x0 = np.where(np.isfinite(x0), x0, 0.0)
+        return TermParams(term, free, fixed, x0, [(None, None)] * len(free))
+    if term.form == "road":
+        rmd = float(start.get("rmd", 100.0))
+        mv = float(np.clip(start.get("mv", 0.5), MV_MIN, 1.0))
+        b = [tuple(np.log(RMD_BOUNDS_M)), (MV_MIN, 1.0)]
+        return TermParams(term, np.zeros(0, np.int64), np.zeros(0), np.array([np.log(rmd), mv]), b, bin_value)
+    gamma = np.array([float(start.get("gamma", 0.0))])
+    return TermParams(term, np.zeros(0, np.int64), np.zeros(0), gamma, [(None, None)], bin_value)
+
+
+@dataclass
+class Objective:
+    """−(ℓ − penalty) and its gradient over the concatenated parameters of ``params``.
+
+    ``active`` picks the terms in the model (the others are ignored: r_t = 1), which gives the
+    marginal (naive) fits on the same statistics.
+    """
+
+    cells: CellStats
+    points: PointStats
+    params: list[TermParams]
+    active: list[int]
+    penalty_sd: float
+    smooth_sd: float
+
+    def __post_init__(self) -> None:
+        sizes = [self.params[k].size for k in self.active]
+        self.offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
+        self.n = self.points.index.shape[0]
+        # The points enter only through each term's distinct (level, value) rows and their counts.
+        self._rows = [_distinct_rows(self.points.index[:, k], self.points.value[:, k]) for k in self.active]
+
+    @property
+    def x0(self) -> np.ndarray:
+        return np.concatenate([self.params[k].x0 for k in self.active]) if self.active else np.zeros(0)
+
+    @property
+    def bounds(self) -> list:
+        return [b for k in self.active for b in self.params[k].bounds]
+
+    def split(self, x: np.ndarray) -> list[np.ndarray]:
+        return [x[self.offsets[j] : self.offsets[j + 1]] for j in range(len(self.active))]
+
+    def log_r(self, x: np.ndarray, on_cells: bool) -> np.ndarray:
+        """log r per cell combination or per point."""
+        s = self.cells if on_cells else self.points
+        out = np.zeros(s.index.shape[0])
+        for th, k in zip(self.split(x), self.active, strict=True):
+            out += self.params[k].logr(th, s.index[:, k], None if on_cells else s.value[:, k])
+        return out
+
+    def points_sum(self, x: np.ndarray) -> float:
+        """Σ_i log r(x_i) from the distinct rows."""
+        total = 0.0
+        for th, k, (idx, val, cnt) in zip(self.split(x), self.active, self._rows, strict=True):
+            total += float(cnt @ self.params[k].logr(th, idx, val))
+        return total
+
+    def log_z(self, x: np.ndarray) -> tuple[float, np.ndarray]:
+        """log Σ_c A_c r_c (m²) and the cell-side weights A_c r_c / Z."""
+        lr = self.log_r(x, True)
+        m = np.max(lr)
+        a = self.cells.area * np.exp(lr - m)
+        z = a.sum()
+        return float(np.log(z) + m), a / z
+
+    def loglik(self, x: np.ndarray) -> float:
+        """ℓ(θ): Σ log p(x_i) with p per m² (nats)."""
+        return self.points_sum(x) - self.n * self.log_z(x)[0]
+
+    def penalty(self, x: np.ndarray) -> tuple[float, np.ndarray]:
+        val, grad = 0.0, np.zeros_like(x)
+        for j, (th, k) in enumerate(zip(self.split(x), self.active, strict=True)):
+            p = self.params[k]
+            sl = slice(self.offsets[j], self.offsets[j + 1])
+            if p.term.form == "road":
+                continue
+            val += 0.5 * float(th @ th) / self.penalty_sd**2
+            grad[sl] += th / self.penalty_sd**2
+            if p.term.form == "binned" and self.smooth_sd > 0:
+                lut = p.lut(th)[:-1]
+                ok = np.isfinite(lut)
+                lv = np.where(ok, lut, 0.0)
+                pair = ok[:-1] & ok[1:]
+                diff = np.where(pair, np.diff(lv), 0.0)
+                val += 0.5 * float(diff @ diff) / self.smooth_sd**2
+                g_lut = np.zeros(lut.shape[0])
+                g_lut[:-1] -= diff / self.smooth_sd**2
+                g_lut[1:] += diff / self.smooth_sd**2
+                grad[sl] += g_lut[p.free]
+        return val, grad
+
+    def __call__(self, x: np.ndarray) -> tuple[float, np.ndarray]:
+        """(−(ℓ − penalty), gradient), both divided by n for conditioning."""
+        log_z, wc = self.log_z(x)
+        ll = self.points_sum(x) - self.n * log_z
+        g = np.zeros_like(x)
+        for j, (th, k, (idx, val, cnt)) in enumerate(zip(self.split(x), self.active, self._rows, strict=True)):
+            p = self.params[k]
+            g[self.offsets[j] : self.offsets[j + 1]] = p.grad(th, idx, val, cnt) - self.n * p.grad(
+                th, self.cells.index[:, k], None, wc
+            )
+        pen, gpen = self.penalty(x)
+        return (-(ll - pen)) / self.n, (-(g - gpen)) / self.n
+
+    def hessian(self, x: np.ndarray) -> np.ndarray:
+        """Observed information: Hessian of −(ℓ − penalty) (not divided by n), central differences
+        of the analytic gradient; one-sided at a bound."""
+        k = x.shape[0]
+        h = np.empty((k, k))
+        for j, (lo, hi) in enumerate(self.bounds):
+            step = 1e-5 * max(1.0, abs(x[j]))
+            up = x.copy()
+            dn = x.copy()
+            up[j] += step
+            dn[j] -= step
+            if hi is not None and up[j] > hi:
+                up[j] = x[j]
+            if lo is not None and dn[j] < lo:
+                dn[j] = x[j]
+            h[:, j] = (self(up)[1] - self(dn)[1]) * self.n / (up[j] - dn[j])
+        return 0.5 * (h + h.T)
+
+
+def _distinct_rows(index: np.ndarray, value: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Distinct (level index, value) rows of one term over the points, with their counts."""
+    key = np.stack([index.astype(np.float64), np.nan_to_num(value, nan=-np.inf)], axis=1)
+    rows, cnt = np.unique(key, axis=0, return_counts=True)
+    val = np.where(np.isfinite(rows[:, 1]), rows[:, 1], np.nan)
+    return rows[:, 0].astype(np.int64), val, cnt.astype(np.float64)
+
+
+@dataclass
+class FitResult:
+    x: np.ndarray
+    cov: np.ndarray
+    loglik: float
+    penalty: float
+    success: bool
+    message: str
+    n_iter: int
+    at_bound: np.ndarray
+
+
+def _start_road(obj: Objective, x0: np.ndarray) -> np.ndarray:
+    """Pick the road terms' start among a few rmd and mv values (the form is not concave in rmd)."""
+    x = x0.copy()
+    for j, k in enumerate(obj.active):
+        if obj.params[k].term.form != "road":
+            continue
+        o = obj.offsets[j]
+        d = obj.points.value[:, k]
+        d = d[np.isfinite(d) & (d > 0)]
+        scale = float(np.median(d)) if d.size else float(np.exp(x[o]))
+        grid = [(np.log(rmd), mv) for rmd in scale * np.geomspace(0.125, 4.0, 11) for mv in (0.05, 0.3, 0.8)]
+        grid.append((x[o], x[o + 1]))
+        best = min(grid, key=lambda c: obj(np.concatenate([x[:o], c, x[o + 2 :]]))[0])
+        x[o : o + 2] = best
+    return x
+
+
+def fit(obj: Objective) -> FitResult:
+    """Minimise −(ℓ − penalty) with L-BFGS-B; covariance = inverse observed information."""
+    if obj.n == 0:
+        raise ValueError("no points left to fit (all off the grid or on structural zeros?)")
+    x0 = _start_road(obj, obj.x0)
+    if x0.size == 0:
+        return FitResult(x0, np.zeros((0, 0)), obj.loglik(x0), 0.0, True, "no free parameters", 0, np.zeros(0, bool))
+    res = optimize.minimize(
+        obj, x0, jac=True, method="L-BFGS-B", bounds=obj.bounds, options={"maxiter": 2000, "ftol": 1e-13, "gtol": 1e-9}
+    )
+    x = res.x
+    lo = np.array([b[0] if b[0] is not None else -np.inf for b in obj.bounds])
+    hi = np.array([b[1] if b[1] is not None else np.inf for b in obj.bounds])
+    at_bound = (x <= lo + 1e-9) | (x >= hi - 1e-9)
+    h = obj.hessian(x)
+    cov = np.full_like(h, np.nan)
+    inner = ~at_bound
+    if inner.any():
+        try:
+            cov[np.ix_(inner, inner)] = np.linalg.inv(h[np.ix_(inner, inner)])
+        except np.linalg.LinAlgError:
+            cov[np.ix_(inner, inner)] = np.linalg.pinv(h[np.ix_(inner, inner)])
+    return FitResult(x, cov, obj.loglik(x), obj.penalty(x)[0], bool(res.success), str(res.message), int(res.nit), at_bound)
