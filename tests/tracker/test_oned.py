@@ -121,6 +121,13 @@ def test_previously_unseen_matches_quad(lam, delta, z, sigma):
     )
 
 
+def test_uniform_density():
+    assert quad(oned.uniform_density, -10, 10, peak=0.0) == pytest.approx(1.0, rel=1e-9)
+    np.testing.assert_array_equal(
+        oned.uniform_density(np.array([-4.5, -4.0, 0.0, 4.0, 4.5])), [0, 1 / 8, 1 / 8, 1 / 8, 0]
+    )
+
+
 def test_uniform_unseen_is_truncated_mass_over_width():
     expected = quad(lambda x: stats.norm.pdf(x, 0.4, 1.3) / (2 * L))
     assert oned.previously_unseen_uniform(0.4, 1.3) == pytest.approx(expected, rel=1e-12)
@@ -159,29 +166,34 @@ def test_long_wavelength_gives_the_uniform_posterior(delta, z):
     """lambda -> inf: 1 + cos(2 pi x/lambda + delta) -> 1 + cos(delta), a constant (delta != pi)."""
     x = np.linspace(-L, L, 41)
     uniform = oned.uniform_posterior_density(x, z)
-    errs = []
     for lam in (1e3, 1e4, 1e5):
-        errs.append(np.max(np.abs(oned.posterior_density(x, lam, delta, z) - uniform)))
-    assert errs[0] > errs[1] > errs[2]
-    assert errs[2] < 1e-3 * np.max(uniform)
-    # Taylor in kL (k = 2 pi/lambda): the prior's relative variation on [-L, L] is at most
-    # eps = tan(|delta|/2) kL + (kL)^2 / (2 (1 + cos delta)), so previouslyUnseen / uniform lies
-    # within 1 +- 2 eps (+ O(eps^2)).
-    kl = 2 * np.pi / 1e5 * L
-    eps = np.tan(abs(delta) / 2) * kl + kl**2 / (2 * (1 + np.cos(delta)))
-    gains = [abs(float(oned.unseen_gain(lam, delta, z))) for lam in (1e3, 1e4, 1e5)]
-    assert gains[2] <= gains[1] <= gains[0]
-    assert gains[2] <= 2.5 * eps * oned.previously_unseen_uniform(z) + 1e-15
+        # Taylor in kL (k = 2 pi/lambda): the prior's relative variation on [-L, L] is at most
+        # eps = tan(|delta|/2) kL + (kL)^2 / (2 (1 + cos delta)), so posterior / uniform posterior
+        # and previouslyUnseen / uniform lie within 1 +- 2 eps (1 + eps) (+ O(eps^2)).
+        kl = 2 * np.pi / lam * L
+        eps = np.tan(abs(delta) / 2) * kl + kl**2 / (2 * (1 + np.cos(delta)))
+        err = np.max(np.abs(oned.posterior_density(x, lam, delta, z) - uniform))
+        assert err <= 2.5 * eps * np.max(uniform) + 1e-15
+        gain = abs(float(oned.unseen_gain(lam, delta, z)))
+        assert gain <= 2.5 * eps * oned.previously_unseen_uniform(z) + 1e-15
+    assert np.max(np.abs(oned.posterior_density(x, 1e5, delta, z) - uniform)) < 1e-3 * np.max(uniform)
     assert oned.posterior_ise(1e5, delta, z) < 1e-8
 
 
 @settings(max_examples=30, deadline=None)
 @given(delta=st.floats(-np.pi, np.pi), z=st.floats(-2, 2))
 def test_short_wavelength_gain_vanishes(delta, z):
-    """lambda -> 0: the cosine averages out against the report, so the gain -> 0 (like lambda)."""
-    gains = [abs(float(oned.unseen_gain(lam, delta, z))) for lam in (1e-2, 1e-3, 1e-4)]
-    assert gains[2] < 1e-5
-    assert gains[2] <= gains[0] + 1e-15
+    """lambda -> 0: the cosine averages out against the report, so the gain -> 0 like lambda.
+
+    Integrating by parts, |int_{-L}^{L} G cos(kx + delta)| <= (G(-L) + G(L) + int |G'|) / k
+    <= 4 G_max / k, and |N - 2L| <= 2/k, which bounds |gain| below.
+    """
+    mass = stats.norm.cdf(L, z) - stats.norm.cdf(-L, z)
+    for lam in (1e-2, 1e-3, 1e-4):
+        k = 2 * np.pi / lam
+        i_bound, n_bound = 4 * stats.norm.pdf(0.0) / k, 2 / k
+        bound = (i_bound + mass * n_bound / (2 * L)) / (2 * L - n_bound)
+        assert abs(float(oned.unseen_gain(lam, delta, z))) <= bound
 
 
 def test_delta_pi_long_wavelength_tends_to_quadratic_prior():
