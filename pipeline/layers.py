@@ -133,6 +133,12 @@ def read_vector(spec: LayerSpec, grid: Grid, columns: list[str] | None = None) -
             raise LayerError(_stale_index_hint(spec, exc)) from None
     geoms = shapely.from_wkb(wkb) if wkb is not None else np.empty(0, dtype=object)
     keep = ~shapely.is_missing(geoms) & ~shapely.is_empty(geoms)
+    if not keep.all():
+        hint = ""
+        if spec.path.suffix.lower() == ".shp" and not spec.restore_index:
+            hint = f" (a stale .shx index reads as missing shapes: try restore_index = true in [layers.{spec.name}])"
+        warnings.warn(f"{_where(spec)}: {int((~keep).sum())} of {keep.size} features have no geometry and are skipped{hint}",
+                      LayerWarning, stacklevel=2)
     geoms = geoms[keep]
     attributes = {c: np.asarray(v)[keep] for c, v in zip(columns or [], values, strict=True)}
     invalid = ~shapely.is_valid(geoms)
