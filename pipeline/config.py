@@ -43,6 +43,7 @@ from pyproj import Transformer
 from rasterio.crs import CRS
 
 from pipeline.grid import Grid, GridError
+from pipeline.lidar import SUFFIXES as POINTCLOUD_SUFFIXES
 from pipeline.likelihood import LikelihoodError, LikelihoodModel
 
 
@@ -51,7 +52,6 @@ class ConfigError(ValueError):
 
 
 RASTER_SUFFIXES = {".tif", ".tiff", ".vrt", ".img", ".asc"}
-POINTCLOUD_SUFFIXES = {".ply", ".pcd", ".xyz", ".pts"}
 
 
 @dataclass(frozen=True)
