@@ -14,8 +14,10 @@ with replacement. It measures slant range ρ (standard deviation ``range_std_m``
 * across it                σ_c = azimuth_std_rad · g,
 
 V = σ_g² u uᵀ + σ_c² w wᵀ with u the unit ground vector from platform to target and w ⟂ u.
-Cross-range error grows linearly with range, so the ellipses are elongated (4–8 : 1 with the
-defaults at 25–50 km), perpendicular to the line of sight, and rotate as the platform flies by.
+Cross-range error grows linearly with range, so the ellipses are elongated (with the defaults
+σ_c = 50–100 m against σ_g ≈ 12.5 m at 25–50 km: 4–8 : 1), perpendicular to the line of sight, and
+rotate as the platform flies by. The defaults put σ_c at the scale of the prior's structure (road-side
+ridges ~100 m wide) and of the target spacing, where the paper (section 5) expects the prior to matter.
 V is evaluated at the true target position and reported without error, as in the paper.
 """
 
@@ -39,8 +41,8 @@ class AirborneSensor:
     standoff_m: float = 25000.0
     speed_mps: float = 150.0
     report_interval_s: float = 6.0
-    range_std_m: float = 25.0
-    azimuth_std_rad: float = 0.004
+    range_std_m: float = 12.0
+    azimuth_std_rad: float = 0.002
 
     def __post_init__(self) -> None:
         for name in ("altitude_m", "standoff_m", "speed_mps", "report_interval_s", "range_std_m", "azimuth_std_rad"):

@@ -162,7 +162,8 @@ def test_score_is_zero_for_identical_mixtures_and_symmetric() -> None:
     rng = np.random.default_rng(23)
     a, b = _gaussians(rng, 3), _gaussians(rng, 2)
     assert score(prior, *a, True, *a, True) == 0.0
-    assert score(prior, *a, True, *b, True) == pytest.approx(score(prior, *b, True, *a, True), rel=1e-12)
+    # Swapping the mixtures reorders the Gaussian products' rounding; Score² cancels large terms.
+    assert score(prior, *a, True, *b, True) == pytest.approx(score(prior, *b, True, *a, True), rel=1e-9)
     assert score(prior, *a, False, *b, True) > 0
 
 

@@ -1,0 +1,134 @@
+"""The experiment harness: τ parsing, the integral cache, per-data-set records cross-checked against
+direct scoring of fresh (uncached) tracker runs, determinism across workers, summary and outputs."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+from affine import Affine
+
+from pipeline.grid import Grid
+from pipeline.prior import TerrainPrior
+from tracker.association import associate, perfect_estimate
+from tracker.experiment import (
+    CachedIntegrator,
+    ExperimentConfig,
+    parse_taus,
+    run_dataset,
+    run_experiment,
+    summarise,
+    write_outputs,
+)
+from tracker.metrics import score
+from tracker.simulate import AirborneSensor, simulate
+from tracker.terrace import integrate
+
+TAUS = (-4.0, -1.0, 2.0)
+
+
+@pytest.fixture(scope="module")
+def prior_path(tmp_path_factory) -> str:
+    """A 6 km square prior with road-like ridges and a lake, written like `terrain-prior build` does."""
+    n = 300
+    yy, xx = np.mgrid[0:n, 0:n]
+    r = 0.15 + np.exp(-0.5 * ((xx - 0.6 * yy - 80) / 5.0) ** 2) + np.exp(-0.5 * ((yy - 170) / 5.0) ** 2)
+    r[(xx - 200) ** 2 + (yy - 90) ** 2 < 25**2] = 0.0
+    grid = Grid("EPSG:32734", Affine(20.0, 0.0, 300000.0, 0.0, -20.0, 6200000.0), n, n)
+    path = tmp_path_factory.mktemp("prior") / "prior.tif"
+    TerrainPrior.from_array(r, grid).write(path)
+    return str(path)
+
+
+def _config(**kw) -> ExperimentConfig:
+    base = dict(n_datasets=3, n_reports=40, taus=TAUS, n_targets=80, region_m=None,
+                sensor=AirborneSensor(standoff_m=15000.0))
+    base.update(kw)
+    return ExperimentConfig(**base)
+
+
+def test_parse_taus() -> None:
+    taus = parse_taus("-3:3:0.25")
+    assert len(taus) == 25 and taus[0] == -3.0 and taus[-1] == 3.0 and -1.75 in taus
+    assert parse_taus("-1,0.5") == (-1.0, 0.5)
+    for bad in ("3:-3:0.25", "-3:3:0", "a:b:c", "1:2"):
+        with pytest.raises(ValueError, match="--tau"):
+            parse_taus(bad)
+
+
+def test_config_validation() -> None:
+    with pytest.raises(ValueError, match="variants"):
+        ExperimentConfig(variants=("XX",))
+    with pytest.raises(ValueError, match="n_datasets"):
+        ExperimentConfig(n_datasets=1)
+
+
+def test_cached_integrator_matches_terrace(prior_path: str) -> None:
+    prior = TerrainPrior.read(prior_path)
+    rng = np.random.default_rng(0)
+    means = 300000.0 + rng.uniform(1000, 5000, size=(6, 2)) + np.array([0.0, 6194000.0 - 300000.0])
+    covs = np.tile(np.diag([80.0**2, 30.0**2]), (6, 1, 1))
+    cache = CachedIntegrator(prior)
+    first = cache(prior, means[:4], covs[:4])
+    mixed = cache(prior, means[2:], covs[2:], squared=False)
+    sq = cache(prior, means, covs, squared=True)
+    np.testing.assert_array_equal(first, integrate(prior, means[:4], covs[:4]))
+    np.testing.assert_array_equal(mixed, integrate(prior, means[2:], covs[2:]))
+    np.testing.assert_array_equal(sq, integrate(prior, means, covs, squared=True))
+    assert cache.hits == 2 and cache.misses == 4 + 2 + 6
+    with pytest.raises(ValueError, match="different prior"):
+        cache(TerrainPrior.read(prior_path), means, covs)
+
+
+def test_run_dataset_matches_direct_scoring(prior_path: str) -> None:
+    config = _config()
+    records = pd.DataFrame(run_dataset(prior_path, 5, config))
+    assert len(records) == 3 * len(TAUS)
+    prior = TerrainPrior.read(prior_path)
+    sc = simulate(prior, 5, config.n_targets, config.n_reports, config.region_m, config.keep_fraction, config.sensor)
+    ref = perfect_estimate(prior, sc.reports)
+    nd = np.unique(sc.reports.truth).size
+    for _, rec in records.iterrows():
+        assoc = "UU" if rec.variant == "UT" else rec.variant
+        res = associate(prior, sc.reports, assoc, tau=rec.tau)  # fresh: no shared cache
+        est = res.estimate
+        expected = score(prior, est.means, est.covs, rec.variant != "UU", ref.means, ref.covs, True)
+        assert rec.score == pytest.approx(expected, rel=1e-9, abs=1e-12)
+        assert rec.nd == nd and rec.nd_hat == res.n_detected
+        assert rec.nd_abs_error == abs(res.n_detected - nd)
+    # UT associates exactly as UU: only the score may differ.
+    uu = records[records.variant == "UU"].set_index("tau")
+    ut = records[records.variant == "UT"].set_index("tau")
+    for col in ("nd_hat", "purity", "gospa_m", "ospa_m"):
+        pd.testing.assert_series_equal(uu[col], ut[col])
+
+
+@pytest.fixture(scope="module")
+def serial_results(prior_path: str) -> pd.DataFrame:
+    return run_experiment(prior_path, _config(), workers=1, progress=False)
+
+
+@pytest.mark.slow
+def test_experiment_deterministic_across_workers(prior_path: str, serial_results: pd.DataFrame) -> None:
+    parallel = run_experiment(prior_path, _config(), workers=2, progress=False)
+    pd.testing.assert_frame_equal(serial_results, parallel)
+
+
+def test_summary_and_outputs(serial_results: pd.DataFrame, tmp_path) -> None:
+    summary = summarise(serial_results, _config())
+    for v in ("UU", "UT", "TT"):
+        means = serial_results[serial_results.variant == v].groupby("tau")["score"].mean()
+        assert summary["variants"][v]["best_tau"] == means.idxmin()
+        assert summary["variants"][v]["best_mean_score"] == pytest.approx(means.min())
+    for form in ("table_normal", "table_t"):
+        t = summary[form]
+        assert t["TT"]["UU"] + t["UU"]["TT"] == pytest.approx(1.0)
+        assert all(0.0 <= t[a][b] <= 1.0 for a in t for b in t if a != b)
+    paths = write_outputs(serial_results, summary, tmp_path / "out", title="test")
+    back = pd.read_parquet(paths["results"])
+    pd.testing.assert_frame_equal(back, serial_results)
+    assert json.loads((tmp_path / "out" / "summary.json").read_text())["n_datasets"] == 3
+    assert len(paths["figures"]) == 6
+    assert "TT" in (tmp_path / "out" / "table1.md").read_text()
