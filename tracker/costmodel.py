@@ -178,7 +178,7 @@ def choose(sc, reach, spd: np.ndarray, lam_r: np.ndarray, gamma: float, tau: flo
     extent = np.maximum(pts.max(axis=0) - pts.min(axis=0), 1e-9)
     rng = np.random.default_rng(0)
     pick = rng.choice(n_t, size=min(n_t, _SAMPLE), replace=False)
-    sig = reach.sigma(max_abs_dt(sc.ttime[pick], t_mid - tau / 2, t_mid + tau / 2))
+    sig = reach.sigma(max_abs_dt(sc.ttime[pick], t_mid - tau / 2, t_mid + tau / 2), pick)
     r0 = np.sqrt(gamma * (sig**2 + float(np.mean(lam_r))))
     vol = expected_volume(m, r0, spd[pick], tau, dim)
     n_cand = n_t * n_r * vol / float(np.prod(extent + 2 * r0.mean()))

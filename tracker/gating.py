@@ -19,7 +19,7 @@ from scipy.stats import chi2
 
 from tracker import costmodel
 from tracker.gating_exact import RADIUS_SLACK, bad_covariances, lambda_max_bound, log_det
-from tracker.gating_grid import build_grid, query_grid
+from tracker.gating_grid import build_grid, query_grid, sort_pairs, spatial_order
 from tracker.motion import ReachBound, max_abs_dt, speed
 
 _MAX_BUCKETS = 6
@@ -82,6 +82,7 @@ def gate(track_means, track_covs, report_means, report_covs, threshold: float | 
     nt, nr = sc.tpos.shape[0], sc.rpos.shape[0]
     if nt == 0 or nr == 0:
         return _result(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), return_d2)
+    sc, t_perm, r_perm = _spatially_sorted(sc)
     plan = _plan(sc, gamma, w_logdet, n_projections, orientation)
     parts = []
     for k in range(plan.m):
@@ -91,8 +92,22 @@ def gate(track_means, track_covs, report_means, report_covs, threshold: float | 
     t_idx = np.concatenate([p[0] for p in parts]) if parts else np.zeros(0, np.int64)
     r_idx = np.concatenate([p[1] for p in parts]) if parts else np.zeros(0, np.int64)
     d2 = np.concatenate([p[2] for p in parts]) if parts else np.zeros(0)
-    order = np.argsort(t_idx * nr + r_idx, kind="stable")
+    t_idx, r_idx = t_perm[t_idx], r_perm[r_idx]
+    order = sort_pairs(t_idx, r_idx, nt)
     return _result(t_idx[order], r_idx[order], d2[order], return_d2)
+
+
+def _spatially_sorted(sc: _Scene) -> tuple[_Scene, np.ndarray, np.ndarray]:
+    """The scene with tracks (at mid-scan) and reports in spatial order, and both permutations.
+
+    Neighbouring queries then touch neighbouring cells and points: the kernels are bound by
+    memory latency, not arithmetic."""
+    t_mid = 0.5 * (sc.rtime.min() + sc.rtime.max()) if sc.moving else 0.0
+    t_perm = spatial_order(sc.tpos + (t_mid - sc.ttime)[:, None] * sc.tvel)
+    r_perm = spatial_order(sc.rpos)
+    return _Scene(sc.dim, sc.moving, sc.tpos[t_perm], sc.tvel[t_perm], sc.tcov[t_perm],
+                  sc.ttime[t_perm], sc.tq[t_perm], sc.rpos[r_perm], sc.rcov[r_perm],
+                  sc.rtime[r_perm]), t_perm, r_perm
 
 
 def _result(t_idx, r_idx, d2, return_d2):
@@ -197,6 +212,7 @@ class _Plan:
     gamma_r: np.ndarray   # per-report bound on the pair's gamma (score form), else gamma
     gamma_t: np.ndarray   # per-track bound on the pair's gamma (static score form), else inf
     coord_slack: float
+    choice: costmodel.Choice | None = None  # the cost model's prediction, when asked
 
 
 def _plan(sc: _Scene, gamma: float, w_logdet: float, n_projections, orientation) -> _Plan:
@@ -218,6 +234,7 @@ def _plan(sc: _Scene, gamma: float, w_logdet: float, n_projections, orientation)
         return _Plan(1, 0.0, 0.0, np.zeros(len(lam_r), np.int64), orientation != "tracks",
                      reach, spd, lam_r, gamma_r, gamma_t, coord_slack)
     tau = t_hi - t_lo
+    choice = None
     if n_projections == "auto" or orientation == "auto":
         choice = costmodel.choose(sc, reach, spd, lam_r, float(np.max(gamma_r)), tau)
         m = choice.m if n_projections == "auto" else int(n_projections)
@@ -229,7 +246,7 @@ def _plan(sc: _Scene, gamma: float, w_logdet: float, n_projections, orientation)
     bins = np.minimum(((sc.rtime - t_lo) / (2 * width)).astype(np.int64), m - 1) if tau > 0 \
         else np.zeros(len(sc.rtime), np.int64)
     return _Plan(m, t_lo, width, bins, on_reports, reach, spd, lam_r, gamma_r, gamma_t,
-                 coord_slack)
+                 coord_slack, choice)
 
 
 def _bucket_ids(key: np.ndarray, buckets) -> tuple[np.ndarray, int]:
@@ -275,7 +292,7 @@ def _gate_bin(sc: _Scene, plan: _Plan, k: int, reports: np.ndarray, gamma: float
         rad[(g < 0.0) | ~np.isfinite(rad)] = -1.0
         cell = _bucket_cell(rad)
         grid = build_grid(sc.rpos[reports], reports, bid, nb, cell)
-        qpos, qidx = tpos_k, tracks
+        qpos = tpos_k
     else:
         reach = sig + w * plan.speed
         bid, nb = _bucket_ids(reach, buckets)
@@ -289,12 +306,25 @@ def _gate_bin(sc: _Scene, plan: _Plan, k: int, reports: np.ndarray, gamma: float
         rad[(g < 0.0) | ~np.isfinite(rad)] = -1.0
         cell = _bucket_cell(rad)
         grid = build_grid(tpos_k, tracks, bid, nb, cell)
-        qpos, qidx = sc.rpos[reports], reports
-    return query_grid(np.ascontiguousarray(qpos), qidx, np.ascontiguousarray(rad),
-                      plan.on_reports, grid.origin, grid.cell, grid.dims, grid.seg, grid.keys,
-                      grid.members, grid.dense, grid.table_seg, grid.table, sc.tpos, sc.tvel,
-                      sc.tcov, sc.ttime, sc.tq, sc.rpos, sc.rcov, sc.rtime, sc.moving, gamma,
-                      w_logdet)
+        qpos = sc.rpos[reports]
+    if plan.on_reports:
+        rows = grid.members
+        t_loc, r_loc, d2 = query_grid(
+            np.ascontiguousarray(qpos), np.ascontiguousarray(rad), True, *_grid_args(grid),
+            sc.tpos, sc.tvel, sc.tcov, sc.ttime, sc.tq, sc.rpos[rows], sc.rcov[rows],
+            sc.rtime[rows], sc.moving, gamma, w_logdet)
+        return t_loc, rows[r_loc], d2
+    rows = grid.members
+    t_loc, r_loc, d2 = query_grid(
+        np.ascontiguousarray(qpos), np.ascontiguousarray(rad), False, *_grid_args(grid),
+        sc.tpos[rows], sc.tvel[rows], sc.tcov[rows], sc.ttime[rows], sc.tq[rows],
+        sc.rpos[reports], sc.rcov[reports], sc.rtime[reports], sc.moving, gamma, w_logdet)
+    return rows[t_loc], reports[r_loc], d2
+
+
+def _grid_args(grid):
+    return (grid.origin, grid.cell, grid.dims, grid.seg, grid.keys, grid.dense, grid.table_seg,
+            grid.table)
 
 
 def _bucket_max(x: np.ndarray, bid: np.ndarray, nb: int) -> np.ndarray:

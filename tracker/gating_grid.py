@@ -43,10 +43,10 @@ def build_grid(pos: np.ndarray, members: np.ndarray, bucket: np.ndarray, n_bucke
     """Grid over points ``pos`` (n, d) with global ids ``members``, bucket id per point and a
     preferred cell edge per bucket (enlarged when a dense table would need too many cells)."""
     dim = pos.shape[1]
-    order = np.argsort(bucket, kind="stable")
-    counts = np.bincount(bucket, minlength=n_buckets)
-    seg = np.zeros(n_buckets + 1, dtype=np.int64)
-    np.cumsum(counts, out=seg[1:])
+    if n_buckets == 1:
+        order, seg = np.arange(pos.shape[0]), np.array([0, pos.shape[0]], dtype=np.int64)
+    else:
+        order, seg = counting_order(bucket, n_buckets)
     origin = np.zeros((n_buckets, dim))
     cells = np.ones(n_buckets)
     dims = np.ones((n_buckets, dim), dtype=np.int64)
@@ -77,17 +77,16 @@ def build_grid(pos: np.ndarray, members: np.ndarray, bucket: np.ndarray, n_bucke
                 ncell = np.floor(extent / h).astype(np.int64) + 1
         origin[b], cells[b], dims[b] = lo, h, ncell
         keys = _cell_keys(p, lo, h, ncell)
-        o = np.argsort(keys, kind="stable")
-        keys_all[seg[b]:seg[b + 1]] = keys[o]
-        members_all[seg[b]:seg[b + 1]] = members[idx[o]]
         ntot = int(np.prod(ncell))
-        if ntot <= budget:
-            dense[b] = True
-            start = np.zeros(ntot + 1, dtype=np.int64)
-            np.cumsum(np.bincount(keys, minlength=ntot), out=start[1:])
+        dense[b] = ntot <= budget
+        if dense[b]:
+            o, start = counting_order(keys, ntot)
             tables.append(start)
         else:
+            o = np.argsort(keys, kind="stable")
             tables.append(np.zeros(0, dtype=np.int64))
+        keys_all[seg[b]:seg[b + 1]] = keys[o]
+        members_all[seg[b]:seg[b + 1]] = members[idx[o]]
         table_seg.append(table_seg[-1] + tables[-1].size)
     return Grid(origin, cells, dims, seg, keys_all, members_all, dense,
                 np.asarray(table_seg, dtype=np.int64), np.concatenate(tables))
@@ -151,41 +150,41 @@ def _pair_test(t, r, tpos, tvel, tcov, ttime, tq, rpos, rcov, rtime, moving, gam
 
 
 @njit(cache=True, parallel=True)
-def query_grid(qpos, qidx, qrad, query_is_track, origin, cell, dims, seg, keys, members, dense,
-               table_seg, table, tpos, tvel, tcov, ttime, tq, rpos, rcov, rtime, moving, gamma,
-               w_logdet):
-    """Exact-gated pairs between queries (positions qpos, global ids qidx, radius per bucket
-    qrad (nq, K); a negative radius skips the bucket) and the grid's points.
+def query_grid(qpos, qrad, query_is_track, origin, cell, dims, seg, keys, dense, table_seg, table,
+               tpos, tvel, tcov, ttime, tq, rpos, rcov, rtime, moving, gamma, w_logdet):
+    """Exact-gated pairs between queries (rows of qpos, radius per bucket qrad (nq, K); a
+    negative radius skips the bucket) and the grid's points.
 
-    Returns (track ids, report ids, d^2) grouped by query in query order.
+    The query set's arrays (tracks when ``query_is_track``) are indexed by query row, the
+    point set's arrays by sorted grid position, so candidates in a cell are contiguous in
+    memory. Returns local (track row, report row, d^2), grouped by query.
     """
     nq = qpos.shape[0]
     counts = np.zeros(nq + 1, dtype=np.int64)
     no_i, no_f = np.empty(0, np.int64), np.empty(0)
     for i in prange(nq):
-        counts[i + 1] = _visit(i, qpos, qidx, qrad, query_is_track, origin, cell, dims, seg,
-                               keys, members, dense, table_seg, table, tpos, tvel, tcov, ttime,
-                               tq, rpos, rcov, rtime, moving, gamma, w_logdet,
-                               no_i, no_i, no_f, 0, False)
+        counts[i + 1] = _visit(i, qpos, qrad, query_is_track, origin, cell, dims, seg, keys,
+                               dense, table_seg, table, tpos, tvel, tcov, ttime, tq, rpos, rcov,
+                               rtime, moving, gamma, w_logdet, no_i, no_i, no_f, 0, False)
     offs = np.cumsum(counts)
     out_t = np.empty(offs[-1], dtype=np.int64)
     out_r = np.empty(offs[-1], dtype=np.int64)
     out_d2 = np.empty(offs[-1])
     for i in prange(nq):
-        _visit(i, qpos, qidx, qrad, query_is_track, origin, cell, dims, seg, keys, members,
-               dense, table_seg, table, tpos, tvel, tcov, ttime, tq, rpos, rcov, rtime, moving,
-               gamma, w_logdet, out_t, out_r, out_d2, offs[i], True)
+        _visit(i, qpos, qrad, query_is_track, origin, cell, dims, seg, keys, dense, table_seg,
+               table, tpos, tvel, tcov, ttime, tq, rpos, rcov, rtime, moving, gamma, w_logdet,
+               out_t, out_r, out_d2, offs[i], True)
     return out_t, out_r, out_d2
 
 
-@njit(cache=True)
-def _visit(i, qpos, qidx, qrad, query_is_track, origin, cell, dims, seg, keys, members, dense,
-           table_seg, table, tpos, tvel, tcov, ttime, tq, rpos, rcov, rtime, moving, gamma,
-           w_logdet, out_t, out_r, out_d2, at, write):
+@njit(cache=True, inline="always")
+def _visit(i, qpos, qrad, query_is_track, origin, cell, dims, seg, keys, dense, table_seg, table,
+           tpos, tvel, tcov, ttime, tq, rpos, rcov, rtime, moving, gamma, w_logdet, out_t, out_r,
+           out_d2, at, write):
     dim = qpos.shape[1]
     n_buckets = cell.shape[0]
     found = 0
-    q = qidx[i]
+    i = np.int64(i)  # parfor indices are unsigned; keep (t, r) integer when unified with m
     for b in range(n_buckets):
         r = qrad[i, b]
         if r < 0.0 or seg[b + 1] == seg[b]:
@@ -208,9 +207,8 @@ def _visit(i, qpos, qidx, qrad, query_is_track, origin, cell, dims, seg, keys, m
                 else:
                     s = _lower_bound(keys, seg[b], seg[b + 1], k_lo)
                     e = _lower_bound(keys, s, seg[b + 1], k_hi + 1)
-                for m in range(s, e):
-                    p = members[m]
-                    t, rep = (q, p) if query_is_track else (p, q)
+                for m in range(np.int64(s), np.int64(e)):
+                    t, rep = (i, m) if query_is_track else (m, i)
                     d2, ok = _pair_test(t, rep, tpos, tvel, tcov, ttime, tq, rpos, rcov, rtime,
                                         moving, gamma, w_logdet)
                     if ok:
@@ -220,3 +218,51 @@ def _visit(i, qpos, qidx, qrad, query_is_track, origin, cell, dims, seg, keys, m
                             out_d2[at + found] = d2
                         found += 1
     return found
+
+
+@njit(cache=True)
+def counting_order(keys, n_keys):
+    """Stable permutation sorting integer keys in [0, n_keys) (O(n + n_keys)), and the start
+    offset of each key (n_keys + 1,)."""
+    start = np.zeros(n_keys + 1, dtype=np.int64)
+    for k in keys:
+        start[k + 1] += 1
+    for k in range(n_keys):
+        start[k + 1] += start[k]
+    fill = start[:-1].copy()
+    order = np.empty(keys.shape[0], dtype=np.int64)
+    for i in range(keys.shape[0]):
+        order[fill[keys[i]]] = i
+        fill[keys[i]] += 1
+    return order, start
+
+
+def spatial_order(pos: np.ndarray) -> np.ndarray:
+    """Permutation putting points (n, d) in row-major order of a grid with about n cells, so
+    that neighbours sit close in memory (O(n))."""
+    n = pos.shape[0]
+    if n == 0:
+        return np.zeros(0, np.int64)
+    lo, hi = pos.min(axis=0), pos.max(axis=0)
+    extent = hi - lo
+    if not extent.max() > 0.0:
+        return np.arange(n)
+    # at most n^(1/d) cells along the longest axis, so at most ~n cells in all
+    h = float(extent.max()) / np.ceil(n ** (1.0 / pos.shape[1]))
+    ncell = np.floor(extent / h).astype(np.int64) + 1
+    return counting_order(_cell_keys(pos, lo, h, ncell), int(np.prod(ncell)))[0]
+
+
+@njit(cache=True)
+def sort_pairs(t, r, n_t):
+    """Permutation sorting pairs by (t, r): counting sort on t, insertion sort within a t."""
+    order, start = counting_order(t, n_t)
+    for k in prange(n_t):
+        for a in range(start[k] + 1, start[k + 1]):
+            x = order[a]
+            b = a - 1
+            while b >= start[k] and r[order[b]] > r[x]:
+                order[b + 1] = order[b]
+                b -= 1
+            order[b + 1] = x
+    return order

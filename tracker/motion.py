@@ -56,10 +56,12 @@ class ReachBound:
             self.s_v = np.zeros_like(self.s_p)
         self.q = np.broadcast_to(np.asarray(q, dtype=float), self.s_p.shape)
 
-    def sigma(self, abs_dt: np.ndarray | float) -> np.ndarray:
-        """Upper bound on sqrt(lambda_max) of the position covariance after |dt| seconds."""
+    def sigma(self, abs_dt: np.ndarray | float, rows=slice(None)) -> np.ndarray:
+        """Upper bound on sqrt(lambda_max) of the position covariance of tracks ``rows`` after
+        |dt| seconds."""
         abs_dt = np.asarray(abs_dt, dtype=float)
-        return self.s_p + abs_dt * self.s_v + np.sqrt(self.q * abs_dt ** 3 / 3.0)
+        return (self.s_p[rows] + abs_dt * self.s_v[rows]
+                + np.sqrt(self.q[rows] * abs_dt ** 3 / 3.0))
 
 
 def speed(means: np.ndarray, dim: int) -> np.ndarray:
