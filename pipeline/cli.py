@@ -71,7 +71,31 @@ def make_parser() -> argparse.ArgumentParser:
     p.add_argument("--features-png", type=Path, help="feature maps to write (rebuilds the features)")
     p.add_argument("--region", type=Path, help="region config for --features-png (default: the one the prior records)")
     p.set_defaults(func=cmd_show)
+    add_learn_parser(sub)
     return parser
+
+
+def cmd_learn(args: argparse.Namespace) -> None:
+    from pipeline.learn_run import learn_region  # scikit-learn and the fit load only for `learn`
+
+    report = learn_region(args.region, args.targets, args.out, args.layer, args.x, args.y, args.targets_crs,
+                          cv=not args.no_cv, hybrid_prior=args.hybrid_prior, progress=not args.quiet)
+    print(report.table())
+    print("wrote " + ", ".join(str(p) for p in report.paths.values()))
+
+
+def add_learn_parser(sub) -> None:
+    p = sub.add_parser("learn", help="fit the likelihood tables to past target points (Poisson-process ML)")
+    p.add_argument("region", type=Path, help="region config (TOML); its [likelihood.*] tables are the template, [learn] the settings")
+    p.add_argument("--targets", type=Path, required=True, help="past targets: GeoPackage/Shapefile/GeoJSON (centroids) or CSV with x,y")
+    p.add_argument("--layer", help="layer of a multi-layer targets file")
+    p.add_argument("--x", default="x", help="CSV column of x (default x)")
+    p.add_argument("--y", default="y", help="CSV column of y (default y)")
+    p.add_argument("--targets-crs", help="CRS of CSV coordinates (default: the grid's)")
+    p.add_argument("--out", type=Path, required=True, help="fitted likelihood tables (TOML); diagnostics and plot beside it")
+    p.add_argument("--no-cv", action="store_true", help="skip the spatial block cross-validation")
+    p.add_argument("--hybrid-prior", type=Path, help="also write the hybrid (terrain + KDE) prior GeoTIFF here")
+    p.set_defaults(func=cmd_learn)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -24,43 +24,65 @@ def cell_counts(grid: Grid, points: np.ndarray) -> np.ndarray:
     return np.bincount(flat, minlength=grid.height * grid.width).reshape(grid.shape).astype(np.float64)
 
 
-def _centre_weight(sigma_px: float) -> float:
-    """Weight a unit point puts on its own cell under scipy's truncated, normalised Gaussian filter."""
+def _kernel_1d(sigma_px: float) -> np.ndarray:
+    """scipy's truncated, normalised 1-D Gaussian weights for offsets −R..R cells."""
     radius = int(TRUNCATE * sigma_px + 0.5)
     impulse = np.zeros(2 * radius + 1)
     impulse[radius] = 1.0
-    return float(ndimage.gaussian_filter1d(impulse, sigma_px, mode="constant", truncate=TRUNCATE)[radius] ** 2)
+    return ndimage.gaussian_filter1d(impulse, sigma_px, mode="constant", truncate=TRUNCATE)
 
 
-def grid_kde(grid: Grid, points: np.ndarray, bandwidth: float) -> tuple[np.ndarray, float]:
-    """Gaussian KDE (density per m², points snapped to cell centres) on the grid, and the density
-    each point adds at its own cell (for leave-one-out values). ``bandwidth`` in metres."""
+def grid_kde(grid: Grid, points: np.ndarray, bandwidth: float) -> np.ndarray:
+    """Gaussian KDE (density per m², points snapped to cell centres) on the grid; ``bandwidth`` in metres."""
     if not bandwidth > 0:
         raise ValueError(f"KDE bandwidth must be > 0 metres, got {bandwidth}")
     counts = cell_counts(grid, points)
     n = counts.sum()
     if n == 0:
         raise ValueError("grid_kde: no points on the grid")
-    sigma = bandwidth / grid.dx
-    dens = ndimage.gaussian_filter(counts, sigma, mode="constant", truncate=TRUNCATE) / (n * grid.cell_area)
-    return dens, _centre_weight(sigma) / (n * grid.cell_area)
+    return ndimage.gaussian_filter(counts, bandwidth / grid.dx, mode="constant", truncate=TRUNCATE) / (n * grid.cell_area)
 
 
-def log_kde_feature(grid: Grid, points: np.ndarray, bandwidth: float) -> tuple[np.ndarray, np.ndarray]:
-    """log of the floored grid KDE on the grid (log per m²) and its leave-one-out value at each point.
+def _own_group_mass(grid: Grid, points: np.ndarray, groups: np.ndarray, bandwidth: float) -> np.ndarray:
+    """For each point, Σ over points j of its own group of the grid-kernel weight j puts on its cell."""
+    w1 = _kernel_1d(bandwidth / grid.dx)
+    radius = len(w1) // 2
+    u, v = grid.to_pixel(points[:, 0], points[:, 1])
+    col, row = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
+    out = np.zeros(len(points))
+    order = np.argsort(groups, kind="stable")
+    bounds = np.flatnonzero(np.diff(groups[order])) + 1
+    for members in np.split(order, bounds):
+        dc = np.abs(col[members][:, None] - col[members][None, :])
+        dr = np.abs(row[members][:, None] - row[members][None, :])
+        near = (dc <= radius) & (dr <= radius)
+        wts = np.where(near, w1[np.minimum(dc, radius) + radius] * w1[np.minimum(dr, radius) + radius], 0.0)
+        out[members] = wts.sum(axis=1)
+    return out
 
-    The leave-one-out value removes the point's own kernel, so the hybrid's exponent is fitted on
-    how well the *other* points predict each one (otherwise it rewards bandwidth → 0).
+
+def log_kde_feature(
+    grid: Grid, points: np.ndarray, bandwidth: float, groups: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """log of the floored grid KDE on the grid (log per m²) and, at each point, the same from the
+    points *outside its group* (each point its own group when ``groups`` is None: leave-one-out).
+
+    The hybrid's exponent is fitted on those held-out values: how well other points (other blocks,
+    under spatial block CV) predict each one; the full KDE at a point's own cell would reward γ for
+    the point's own kernel.
     """
-    dens, self_w = grid_kde(grid, points, bandwidth)
+    if groups is None:
+        groups = np.arange(len(points))
+    dens = grid_kde(grid, points, bandwidth)
     n = len(points)
     floor = FLOOR_SHARE / (grid.width * grid.height * grid.cell_area)
     u, v = grid.to_pixel(points[:, 0], points[:, 1])
-    ok = (u >= 0) & (u < grid.width) & (v >= 0) & (v < grid.height)
-    at = np.zeros(n)
-    at[ok] = dens[v[ok].astype(np.intp), u[ok].astype(np.intp)]
-    loo = np.clip((n * at - n * self_w) / max(n - 1, 1), 0.0, None)
-    return np.log((1 - FLOOR_SHARE) * dens + floor), np.log((1 - FLOOR_SHARE) * loo + floor)
+    at = dens[v.astype(np.intp), u.astype(np.intp)]
+    _, inv, size = np.unique(groups, return_inverse=True, return_counts=True)
+    others = n - size[inv]
+    own = _own_group_mass(grid, points, groups, bandwidth) / grid.cell_area
+    held = np.where(others > 0, np.clip(n * at - own, 0.0, None) / np.maximum(others, 1), 0.0)
+    return np.log((1 - FLOOR_SHARE) * dens + floor), np.log((1 - FLOOR_SHARE) * held + floor)
 
 
 def block_ids(points: np.ndarray, origin: tuple[float, float], block_size: float) -> np.ndarray:

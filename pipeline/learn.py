@@ -25,7 +25,7 @@ import numpy as np
 from sklearn.base import BaseEstimator
 
 from pipeline.features import Feature, FeatureStack
-from pipeline.kde import log_kde_feature
+from pipeline.kde import block_ids, log_kde_feature
 from pipeline.likelihood import (
     BinnedLikelihood,
     CategoricalLikelihood,
@@ -48,6 +48,8 @@ from pipeline.sufficient import (
 
 SPATIAL = "spatial_kde"
 """Name of the hybrid's learned spatial feature (log of a KDE of the training points, log per m²)."""
+SPATIAL_BIN = 0.05
+"""Fine-bin width of the log-KDE feature (nats); r varies by a factor exp(γ·0.05) across a bin."""
 Z95 = 1.959963984540054
 
 
@@ -125,7 +127,9 @@ class PriorEstimator(BaseEstimator):
     soften : likelihood (relative to the reference level) given to structural zeros when softened.
     flexible : feature -> left bin edges: fit that feature as bins instead of the road form.
     spatial_bandwidth : metres; when set, the hybrid: one more term exp(γ·log KDE of the training
-        points) with γ fitted (leave-one-out values at the training points).
+        points) with γ fitted on each training point's KDE value from the points outside its
+        ``spatial_block`` (square blocks of that many metres; leave-one-out when None).
+    spatial_block : metres; see ``spatial_bandwidth``.
     bin_width : fine-bin width of continuous terms in feature units (default: a quarter cell).
     n_bins : quantile bins of continuous non-distance features without a template.
     """
@@ -141,6 +145,7 @@ class PriorEstimator(BaseEstimator):
         soften: float = 1e-3,
         flexible: dict[str, list[float]] | None = None,
         spatial_bandwidth: float | None = None,
+        spatial_block: float | None = None,
         bin_width: float | None = None,
         n_bins: int = 8,
     ) -> None:
@@ -153,6 +158,7 @@ class PriorEstimator(BaseEstimator):
         self.soften = soften
         self.flexible = flexible
         self.spatial_bandwidth = spatial_bandwidth
+        self.spatial_block = spatial_block
         self.bin_width = bin_width
         self.n_bins = n_bins
 
@@ -178,12 +184,15 @@ class PriorEstimator(BaseEstimator):
         loo = None
         if self.spatial_bandwidth:
             inside = _inside(features, pts)
-            logk, loo_in = log_kde_feature(features.grid, pts[inside], self.spatial_bandwidth)
+            groups = None
+            if self.spatial_block:
+                groups = block_ids(pts[inside], features.grid.bounds[:2], self.spatial_block)
+            logk, loo_in = log_kde_feature(features.grid, pts[inside], self.spatial_bandwidth, groups)
             loo = np.full(len(pts), np.nan)
             loo[inside] = loo_in
             stack = FeatureStack(features.grid, dict(features.features))
             stack.add(Feature(SPATIAL, logk, "continuous", "log(1/m2)"))
-            terms.append(with_range(Term(SPATIAL, "loglinear", bin_width=0.01), logk))
+            terms.append(with_range(Term(SPATIAL, "loglinear", bin_width=SPATIAL_BIN), logk))
             starts.append({"gamma": 0.5})
         cells = cell_stats(stack, tuple(terms))
         t_pass = time.perf_counter() - t0
@@ -213,6 +222,7 @@ class PriorEstimator(BaseEstimator):
         self.cov_ = cov
         self.cell_stats_ = cells
         self.point_stats_ = used
+        self.used_mask_ = keep
         self.n_points_ = len(pts)
         self.n_used_ = int(keep.sum())
         self.n_off_grid_ = counts["off_grid"]

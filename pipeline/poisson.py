@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba as nb
 import numpy as np
 from scipy import optimize
 
@@ -54,27 +55,41 @@ class TermParams:
         if t.form in DISCRETE_FORMS:
             return self.lut(theta)[index]
         if value is None:
-            per_bin = self.logr(theta, np.zeros(len(self.bin_value), np.int64), self.bin_value)
-            return np.append(per_bin, np.log(t.nodata) if t.nodata > 0 else -np.inf)[index]
-        lognd = np.log(t.nodata) if t.nodata > 0 else -np.inf
+            return self.cell_lut(theta)[index]
+        lognd = self.lut_nodata
         if t.form == "road":
             r = road_likelihood(value, np.exp(theta[0]), theta[1])
             with np.errstate(divide="ignore"):
                 return np.where(index >= 0, np.log(r), lognd)
         return np.where(index >= 0, theta[0] * np.nan_to_num(value), lognd)
 
+    def cell_lut(self, theta: np.ndarray) -> np.ndarray:
+        """log r per level (fine bin for continuous terms) with log(nodata) last."""
+        if self.term.form in DISCRETE_FORMS:
+            return self.lut(theta)
+        n = len(self.bin_value)
+        return np.append(self.logr(theta, np.zeros(n, np.int64), self.bin_value), self.lut_nodata)
+
+    @property
+    def lut_nodata(self) -> float:
+        return float(np.log(self.term.nodata)) if self.term.nodata > 0 else -np.inf
+
     def grad(self, theta: np.ndarray, index: np.ndarray, value: np.ndarray | None, weight: np.ndarray) -> np.ndarray:
         """Σ_c weight_c ∂ log r_c / ∂θ over rows (cells combos or points; ``value=None`` as in :meth:`logr`)."""
         t = self.term
         ok = index >= 0
         if t.form in DISCRETE_FORMS or value is None:
-            per_level = np.bincount(index[ok], weights=weight[ok], minlength=t.n_levels)
-            if t.form in DISCRETE_FORMS:
-                return per_level[self.free]
-            d, w = self.bin_value, per_level
-        else:
-            d, w = value[ok], weight[ok]
-        if t.form == "road":
+            return self.grad_levels(theta, np.bincount(index[ok], weights=weight[ok], minlength=t.n_levels))
+        return self._grad_values(theta, value[ok], weight[ok])
+
+    def grad_levels(self, theta: np.ndarray, per_level: np.ndarray) -> np.ndarray:
+        """As :meth:`grad` from the weights summed per level (fine bin for continuous terms)."""
+        if self.term.form in DISCRETE_FORMS:
+            return per_level[self.free]
+        return self._grad_values(theta, self.bin_value, per_level)
+
+    def _grad_values(self, theta: np.ndarray, d: np.ndarray, w: np.ndarray) -> np.ndarray:
+        if self.term.form == "road":
             rmd, mv = np.exp(theta[0]), theta[1]
             z = d / rmd - 1.0
             g = np.exp(-0.5 * z * z)
@@ -111,8 +126,10 @@ def term_params(
         mv = float(np.clip(start.get("mv", 0.5), MV_MIN, 1.0))
         b = [tuple(np.log(RMD_BOUNDS_M)), (MV_MIN, 1.0)]
         return TermParams(term, np.zeros(0, np.int64), np.zeros(0), np.array([np.log(rmd), mv]), b, bin_value)
-    gamma = np.array([float(start.get("gamma", 0.0))])
-    return TermParams(term, np.zeros(0, np.int64), np.zeros(0), gamma, [(None, None)], bin_value)
+    # γ >= 0: more past points nearby never makes a place less likely. Without the bound, a fit on
+    # held-out-block values learns "targets are where the other blocks' points are not" (γ < 0).
+    gamma = np.array([max(float(start.get("gamma", 0.0)), 0.0)])
+    return TermParams(term, np.zeros(0, np.int64), np.zeros(0), gamma, [(0.0, None)], bin_value)
 
 
 @dataclass
@@ -136,6 +153,9 @@ class Objective:
         self.n = self.points.index.shape[0]
         # The points enter only through each term's distinct (level, value) rows and their counts.
         self._rows = [_distinct_rows(self.points.index[:, k], self.points.value[:, k]) for k in self.active]
+        self._cidx = np.ascontiguousarray(self.cells.index[:, self.active], dtype=np.int64)
+        sizes = [self.params[k].term.n_levels + 1 for k in self.active]
+        self._lut_off = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
 
     @property
     def x0(self) -> np.ndarray:
@@ -163,13 +183,11 @@ class Objective:
             total += float(cnt @ self.params[k].logr(th, idx, val))
         return total
 
-    def log_z(self, x: np.ndarray) -> tuple[float, np.ndarray]:
-        """log Σ_c A_c r_c (m²) and the cell-side weights A_c r_c / Z."""
-        lr = self.log_r(x, True)
-        m = np.max(lr)
-        a = self.cells.area * np.exp(lr - m)
-        z = a.sum()
-        return float(np.log(z) + m), a / z
+    def log_z(self, x: np.ndarray) -> tuple[float, list[np.ndarray]]:
+        """log Σ_c A_c r_c (m²), and per active term the share A_c r_c / Z summed per level."""
+        luts = np.concatenate([self.params[k].cell_lut(th) for th, k in zip(self.split(x), self.active, strict=True)])
+        log_z, shares = _cell_pass(self._cidx, self.cells.area, luts, self._lut_off)
+        return log_z, [shares[self._lut_off[j] : self._lut_off[j + 1] - 1] for j in range(len(self.active))]
 
     def loglik(self, x: np.ndarray) -> float:
         """ℓ(θ): Σ log p(x_i) with p per m² (nats)."""
@@ -204,9 +222,7 @@ class Objective:
         g = np.zeros_like(x)
         for j, (th, k, (idx, val, cnt)) in enumerate(zip(self.split(x), self.active, self._rows, strict=True)):
             p = self.params[k]
-            g[self.offsets[j] : self.offsets[j + 1]] = p.grad(th, idx, val, cnt) - self.n * p.grad(
-                th, self.cells.index[:, k], None, wc
-            )
+            g[self.offsets[j] : self.offsets[j + 1]] = p.grad(th, idx, val, cnt) - self.n * p.grad_levels(th, wc[j])
         pen, gpen = self.penalty(x)
         return (-(ll - pen)) / self.n, (-(g - gpen)) / self.n
 
@@ -227,6 +243,35 @@ class Objective:
                 dn[j] = x[j]
             h[:, j] = (self(up)[1] - self(dn)[1]) * self.n / (up[j] - dn[j])
         return 0.5 * (h + h.T)
+
+
+@nb.njit(cache=True)
+def _cell_pass(index, area, luts, lut_off):
+    """log Z = log Σ_c A_c exp(Σ_t lut_t[index_ct]) and each level's share of Z (flat, per term
+    at ``lut_off``; no data is each term's last slot, picked by index −1)."""
+    m, n_terms = index.shape
+    lr = np.empty(m)
+    top = -np.inf
+    for c in range(m):
+        s = 0.0
+        for t in range(n_terms):
+            i = index[c, t]
+            s += luts[lut_off[t] + i] if i >= 0 else luts[lut_off[t + 1] - 1]
+        lr[c] = s
+        if s > top:
+            top = s
+    shares = np.zeros(luts.shape[0])
+    z = 0.0
+    for c in range(m):
+        w = area[c] * np.exp(lr[c] - top)
+        lr[c] = w
+        z += w
+    for c in range(m):
+        w = lr[c] / z
+        for t in range(n_terms):
+            i = index[c, t]
+            shares[lut_off[t] + i if i >= 0 else lut_off[t + 1] - 1] += w
+    return np.log(z) + top, shares
 
 
 def _distinct_rows(index: np.ndarray, value: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
