@@ -26,7 +26,7 @@ masks = st.tuples(st.integers(1, 14), st.integers(1, 14)).flatmap(
 cell = st.floats(0.25, 50.0)
 
 
-@settings(max_examples=150, deadline=None)
+@settings(max_examples=100, deadline=None)
 @given(mask=masks, dx=cell, dy=cell)
 def test_matches_brute_force(mask, dx, dy):
     np.testing.assert_allclose(distance_m(mask, dx, dy), brute_force(mask, dx, dy), rtol=1e-12, atol=1e-9)
