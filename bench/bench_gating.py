@@ -206,10 +206,10 @@ def _choice(tm, tc, rm, rc, rt):
 def bench_scaling(sizes: list[int], ref_max: int) -> dict:
     rows = []
     for n in sizes:
-        tm, tc, rm, rc = static_scene(n)
+        scene = static_scene(n)
         reps = 3 if n <= 100_000 else 1
-        t_gate, _ = best_time(lambda: gate(tm, tc, rm, rc, threshold=GAMMA), reps)
-        t_ref = best_time(lambda: reference_kdtree(tm, tc, rm, rc), reps)[0] if n <= ref_max \
+        t_gate, _ = best_time(lambda s=scene: gate(*s, threshold=GAMMA), reps)
+        t_ref = best_time(lambda s=scene: reference_kdtree(*s), reps)[0] if n <= ref_max \
             else None
         rows.append({"n": n, "gate_s": t_gate, "ref_kdtree_s": t_ref})
     ns = np.array([r["n"] for r in rows], float)

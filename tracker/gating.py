@@ -143,7 +143,9 @@ def _check_finite(name: str, a: np.ndarray) -> None:
         raise ValueError(f"{name} has non-finite values at indices {np.flatnonzero(bad)[:10]}")
 
 
-def _check_covs(name: str, c: np.ndarray) -> None:
+def check_covariances(name: str, c: np.ndarray) -> None:
+    """ValueError naming ``name`` and the bad indices unless every (d, d) matrix is finite,
+    symmetric and positive definite."""
     if c.shape[0] == 0:
         return
     bad = bad_covariances(c, 1e-9)
@@ -175,8 +177,8 @@ def _validate(track_means, track_covs, report_means, report_covs, report_times, 
         raise ValueError("track_means carry velocities: report_times= (M,) is required")
     for name, a in (("track_means", tm), ("report_means", rm)):
         _check_finite(name, a)
-    _check_covs("track_covs", tc)
-    _check_covs("report_covs", rc)
+    check_covariances("track_covs", tc)
+    check_covariances("report_covs", rc)
     rtime = np.zeros(nr)
     ttime = np.zeros(nt)
     tq = np.zeros(nt)

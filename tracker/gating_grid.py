@@ -70,7 +70,7 @@ def build_grid(pos: np.ndarray, members: np.ndarray, bucket: np.ndarray, n_bucke
         if np.prod(ncell.astype(float)) > budget:
             # A coarser grid with an O(1) start table beats binary search unless it is much coarser.
             h_dense = h
-            while np.prod((np.floor(extent / h_dense) + 1)) > budget:
+            while np.prod(np.floor(extent / h_dense) + 1) > budget:
                 h_dense *= 1.25
             if h_dense <= 2.0 * h:
                 h = h_dense
