@@ -51,6 +51,8 @@ class ConfigError(ValueError):
     """A region config that is malformed; the message names the file and key."""
 
 
+TOP_LEVEL_TABLES = {"region", "layers", "features", "likelihood", "meta", "learn"}
+"""``[learn]`` is validated by pipeline.learn_config; the rest here."""
 RASTER_SUFFIXES = {".tif", ".tiff", ".vrt", ".img", ".asc"}
 
 
@@ -329,9 +331,9 @@ def _break_labels(breaks: tuple[float, ...]) -> tuple[str, ...]:
 
 def parse_config(d: dict, source: Path) -> RegionConfig:
     """Validate a parsed TOML document (``source`` is the config path, for messages and relative paths)."""
-    unknown = sorted(set(d) - {"region", "layers", "features", "likelihood", "meta"})
+    unknown = sorted(set(d) - TOP_LEVEL_TABLES)
     if unknown:
-        raise ConfigError(f"{source}: unknown top-level tables {unknown}; allowed region, layers, features, likelihood, meta")
+        raise ConfigError(f"{source}: unknown top-level tables {unknown}; allowed {sorted(TOP_LEVEL_TABLES)}")
     if "region" not in d:
         raise ConfigError(f"{source}: missing [region] table (crs, bounds, cell_size)")
     region = _Table(source, "region", d["region"])
