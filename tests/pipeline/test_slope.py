@@ -126,22 +126,40 @@ def test_slope_classes_bad_breaks(breaks):
         slope_classes(np.zeros((2, 2)), breaks)
 
 
-@pytest.mark.skipif(shutil.which("gdaldem") is None, reason="gdaldem (GDAL command line tools) not installed")
+def gdaldem_slope(dem: np.ndarray, dx: float, dy: float, tmp_path) -> np.ndarray:
+    src, dst = tmp_path / "dem.tif", tmp_path / "slope.tif"
+    profile = dict(driver="GTiff", height=dem.shape[0], width=dem.shape[1], count=1, dtype="float32",
+                   crs="EPSG:32734", transform=Affine(dx, 0, 0, 0, -dy, 0), nodata=np.nan)
+    with rasterio.open(src, "w", **profile) as f:
+        f.write(dem, 1)
+    subprocess.run(["gdaldem", "slope", "-compute_edges", "-q", str(src), str(dst)], check=True)
+    with rasterio.open(dst) as f:
+        return f.read(1, masked=True).filled(np.nan)
+
+
+needs_gdaldem = pytest.mark.skipif(shutil.which("gdaldem") is None, reason="gdaldem (GDAL command line tools) not installed")
+
+
+@needs_gdaldem
 def test_matches_gdaldem(tmp_path):
     """gdaldem slope -compute_edges on a rough DEM with holes; corner cells differ by design (module docstring)."""
     rng = np.random.default_rng(3)
     dem = rng.normal(0, 30, (40, 50)).cumsum(0).cumsum(1).astype(np.float32)
     dem[10:13, 20:22] = np.nan
     dx, dy = 20.0, 15.0
-    src, dst = tmp_path / "dem.tif", tmp_path / "slope.tif"
-    profile = dict(driver="GTiff", height=40, width=50, count=1, dtype="float32", crs="EPSG:32734",
-                   transform=Affine(dx, 0, 0, 0, -dy, 0), nodata=np.nan)
-    with rasterio.open(src, "w", **profile) as f:
-        f.write(dem, 1)
-    subprocess.run(["gdaldem", "slope", "-compute_edges", "-q", str(src), str(dst)], check=True)
-    with rasterio.open(dst) as f:
-        ref = f.read(1, masked=True).filled(np.nan)
+    ref = gdaldem_slope(dem, dx, dy, tmp_path)
     got = slope_deg(dem, dx, dy)
     corners = np.zeros(dem.shape, dtype=bool)
     corners[[0, 0, -1, -1], [0, -1, 0, -1]] = True
     np.testing.assert_allclose(got[~corners], ref[~corners], atol=1e-3)
+
+
+@needs_gdaldem
+def test_gdaldem_corners_halve_a_plane(tmp_path):
+    """The one documented difference: gdaldem repeats the corner column, halving a plane's x-gradient there."""
+    x, _ = centres(6, 7, 20.0, 20.0)
+    dem = (0.5 * x).astype(np.float32)
+    ref = gdaldem_slope(dem, 20.0, 20.0, tmp_path)
+    corners = ([0, 0, -1, -1], [0, -1, 0, -1])
+    np.testing.assert_allclose(ref[corners], angle(0.25, 0.0), atol=1e-4)
+    np.testing.assert_allclose(slope_deg(dem, 20.0, 20.0)[corners], angle(0.5, 0.0), atol=1e-4)
