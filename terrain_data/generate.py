@@ -6,8 +6,8 @@ with layers ``roads`` (lines, ``highway`` in primary/secondary/tertiary/track), 
 ``lakes`` (polygons), ``obstacles`` (polygons, ``kind``; one deliberately self-intersecting, so the
 pipeline's make_valid repair shows in its log) and ``surface`` (Voronoi polygons, ``material``).
 
-Run: ``python -m terrain_data.generate`` (rewrites the files; the bytes are reproducible for a given
-library version, the content always).
+Run: ``python -m terrain_data.generate`` (rewrites the files with the same content; the GeoPackage's
+bytes differ by the timestamp GDAL stamps into it).
 """
 
 from __future__ import annotations
