@@ -23,6 +23,7 @@ from dataclasses import asdict, dataclass, field
 from functools import lru_cache, partial
 from pathlib import Path
 
+import numba
 import numpy as np
 import pandas as pd
 from tqdm.auto import tqdm
@@ -188,41 +189,53 @@ def run_dataset(prior_path: str | os.PathLike, seed: int, config: ExperimentConf
     n = len(comps.means)
     w_ref = mixture_weights(n, ref, -1.0)
     records = []
+    # Association-only metrics, once per distinct association (UT shares UU's; τ runs often agree).
+    assoc_metrics: dict[bytes, dict] = {}
     for variant, tau, res, members in evaluations:
         s, err = gram.score(mixture_weights(n, members) + w_ref)
-        points = res.estimate.means
-        on = res.assignments >= 0
+        key = res.assignments.tobytes()
+        if key not in assoc_metrics:
+            on = res.assignments >= 0
+            points = res.estimate.means
+            assoc_metrics[key] = {
+                "gospa_m": gospa(points, detected, config.gospa_c_m)["gospa"],
+                "ospa_m": ospa(points, detected, config.gospa_c_m),
+                "purity": purity(res.assignments[on], reports.truth[on]),
+                "skipped": int((~on).sum()),
+            }
         records.append({
             "seed": int(seed), "variant": variant, "tau": float(tau), "score": s, "score_error_bound": err,
             "nd_hat": int(res.n_detected), "nd": nd, "nd_abs_error": abs(int(res.n_detected) - nd),
-            "gospa_m": gospa(points, detected, config.gospa_c_m)["gospa"],
-            "ospa_m": ospa(points, detected, config.gospa_c_m),
-            "purity": purity(res.assignments[on], reports.truth[on]),
-            "skipped": int((~on).sum()), "n_targets": int(len(sc.targets)),
+            **assoc_metrics[key], "n_targets": int(len(sc.targets)),
         })
     return records
 
 
 def _worker_init() -> None:
     # One numba thread per worker process: the pool already uses the cores.
-    import numba
-
     numba.set_num_threads(1)
 
 
-def map_local(fn: Callable[[int], list[dict]], seeds: Sequence[int], workers: int | None) -> Iterable[list[dict]]:
-    """Map ``fn`` over seeds in a local process pool (``workers`` processes; 1 runs inline), in order.
+def _pool_context() -> multiprocessing.context.BaseContext:
+    """Fork while this process has no numba (OpenMP) thread pool yet: safe and instant. Once it has
+    one, forking is unsafe, so workers come from a fork server with this module preloaded."""
+    try:
+        numba.threading_layer()
+    except ValueError:
+        return multiprocessing.get_context("fork")
+    ctx = multiprocessing.get_context("forkserver")
+    ctx.set_forkserver_preload([__name__])
+    return ctx
 
-    Workers come from a fork server: plain fork is unsafe once numba's OpenMP threads exist, and
-    the server's preloaded imports make workers start much faster than spawn.
-    """
+
+def map_local(fn: Callable[[int], list[dict]], seeds: Sequence[int], workers: int | None) -> Iterable[list[dict]]:
+    """Map ``fn`` over seeds in a local process pool (``workers`` processes, default all cores;
+    1 runs inline), results in seed order."""
     workers = workers or os.cpu_count() or 1
     if workers == 1 or len(seeds) == 1:
         yield from map(fn, seeds)
         return
-    ctx = multiprocessing.get_context("forkserver")
-    ctx.set_forkserver_preload(["tracker.experiment"])
-    with ProcessPoolExecutor(max_workers=min(workers, len(seeds)), mp_context=ctx, initializer=_worker_init) as pool:
+    with ProcessPoolExecutor(max_workers=min(workers, len(seeds)), mp_context=_pool_context(), initializer=_worker_init) as pool:
         yield from pool.map(fn, seeds)
 
 
