@@ -166,7 +166,8 @@ def write_layers(path: Path, layers: dict[str, tuple[list, dict[str, list[str]]]
             )
 
 
-def main() -> None:
+def main(out_dir: Path = HERE) -> None:
+    """Write the region's files into ``out_dir`` (default: beside this file)."""
     rng = np.random.default_rng(SEED)
     river = river_line(rng)
     dem = make_dem(rng, river)
@@ -174,9 +175,9 @@ def main() -> None:
     roads, highway = make_roads(rng)
     obstacles, obstacle_kind = make_obstacles(rng)
     surface, material = make_surface(rng, dem)
-    write_raster(HERE / "dem.tif", dem, -9999.0)
-    write_raster(HERE / "vegetation.tif", make_vegetation(rng, dem), 0)
-    write_layers(HERE / "region.gpkg", {
+    write_raster(out_dir / "dem.tif", dem, -9999.0)
+    write_raster(out_dir / "vegetation.tif", make_vegetation(rng, dem), 0)
+    write_layers(out_dir / "region.gpkg", {
         "roads": (roads, {"highway": highway}),
         "rivers": ([river], {"waterway": ["river"]}),
         "lakes": (lakes, {"natural": ["water"] * len(lakes)}),

@@ -280,3 +280,20 @@ def test_model_override_and_provenance(region) -> None:
     expected = (stack["water"].values == 0) / ((stack["water"].values == 0).sum() * 400.0)
     np.testing.assert_allclose(prior.density, expected)
     assert prior.model["provenance"] == {"config": "x.toml"}
+
+
+def test_bundled_data_is_what_generate_py_makes(tmp_path: Path) -> None:
+    """The committed terrain_data files are reproduced by the committed generator (fixed seed)."""
+    from terrain_data.generate import main as generate
+
+    generate(tmp_path)
+    for name in ("dem.tif", "vegetation.tif"):
+        with rasterio.open(tmp_path / name) as new, rasterio.open(REGION_TOML.parent / name) as old:
+            np.testing.assert_array_equal(new.read(1), old.read(1))
+            assert new.transform == old.transform and new.crs == old.crs and new.nodata == old.nodata
+    for layer in ("roads", "rivers", "lakes", "obstacles", "surface"):
+        new = pyogrio.raw.read(tmp_path / "region.gpkg", layer=layer)
+        old = pyogrio.raw.read(REGION_TOML.parent / "region.gpkg", layer=layer)
+        assert list(new[2]) == list(old[2])
+        for a, b in zip(new[3], old[3], strict=True):
+            np.testing.assert_array_equal(a, b)
