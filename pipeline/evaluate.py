@@ -20,6 +20,7 @@ from pipeline.kde import block_ids, fit_kde_cv
 from pipeline.learn import PriorEstimator
 
 MODELS = ("uniform", "naive", "terrain", "kde", "hybrid")
+HYBRID_FACTORS = (1.0, 2.0, 4.0)
 
 
 @dataclass
@@ -78,6 +79,12 @@ def default_bandwidths(stack: FeatureStack, n: int = 10) -> np.ndarray:
     return np.geomspace(2 * g.dx, max(short / 5, 4 * g.dx), n)
 
 
+def hybrid_bandwidths(kde_bandwidth: float | None) -> list[float] | None:
+    """The hybrid's candidate bandwidths: the KDE's block-CV choice and two and four times it
+    (held-out blocks see the training points only from afar, so the hybrid often wants wider)."""
+    return None if kde_bandwidth is None else [float(kde_bandwidth) * f for f in HYBRID_FACTORS]
+
+
 def block_cv(
     stack: FeatureStack,
     points: np.ndarray,
@@ -91,8 +98,9 @@ def block_cv(
     """Spatial block CV of ``models`` (a subset of :data:`MODELS`).
 
     ``estimator`` sets the terrain model (template, penalty, zero policy); "naive" is its
-    ``method="naive"`` twin and "hybrid" adds the spatial term with the KDE bandwidth chosen by
-    block CV inside the training folds. Points off the grid, and (with ``on_zero="drop"``) on
+    ``method="naive"`` twin and "hybrid" adds the spatial term (γ fitted on leave-block-out KDE
+    values), its bandwidth chosen among :func:`hybrid_bandwidths` of the KDE's bandwidth, itself
+    chosen by block CV inside the training folds. Points off the grid, and (with ``on_zero="drop"``) on
     structural zeros, are excluded from every model's test set alike and counted.
     """
     unknown = set(models) - set(MODELS)
@@ -124,7 +132,7 @@ def block_cv(
             elif m == "kde":
                 scores[f, j] = float(kde.score_samples(test).mean())
             else:
-                params = {"naive": {"method": "naive"}, "terrain": {}, "hybrid": {"spatial_bandwidth": float(kde.bandwidth) if kde else None, "spatial_block": block_size}}[m]
+                params = {"naive": {"method": "naive"}, "terrain": {}, "hybrid": {"spatial_bandwidth": hybrid_bandwidths(kde.bandwidth if kde else None), "spatial_block": block_size}}[m]
                 est = clone(base).set_params(**params).fit(stack, train)
                 ld = est.log_density(test)
                 if not np.all(np.isfinite(ld)):

@@ -22,7 +22,7 @@ import warnings
 from functools import cached_property
 
 import numpy as np
-from sklearn.base import BaseEstimator
+from sklearn.base import BaseEstimator, clone
 
 from pipeline.features import Feature, FeatureStack
 from pipeline.kde import block_ids, log_kde_feature
@@ -126,9 +126,12 @@ class PriorEstimator(BaseEstimator):
     on_zero : points on a structural zero: ``"drop"`` them (counted) or ``"soften"`` every zero to ``soften``.
     soften : likelihood (relative to the reference level) given to structural zeros when softened.
     flexible : feature -> left bin edges: fit that feature as bins instead of the road form.
-    spatial_bandwidth : metres; when set, the hybrid: one more term exp(γ·log KDE of the training
+    spatial_bandwidth : metres, or a list of candidates; when set, the hybrid: one more term
+        exp(γ·log KDE of the training
         points) with γ fitted on each training point's KDE value from the points outside its
-        ``spatial_block`` (square blocks of that many metres; leave-one-out when None).
+        ``spatial_block`` (square blocks of that many metres; leave-one-out when None). With several
+        candidates, the one whose fit has the highest log-likelihood on those held-out values wins
+        (``spatial_bandwidth_``, ``bandwidth_loglik_``).
     spatial_block : metres; see ``spatial_bandwidth``.
     bin_width : fine-bin width of continuous terms in feature units (default: a quarter cell).
     n_bins : quantile bins of continuous non-distance features without a template.
@@ -144,7 +147,7 @@ class PriorEstimator(BaseEstimator):
         on_zero: str = "drop",
         soften: float = 1e-3,
         flexible: dict[str, list[float]] | None = None,
-        spatial_bandwidth: float | None = None,
+        spatial_bandwidth: float | list[float] | None = None,
         spatial_block: float | None = None,
         bin_width: float | None = None,
         n_bins: int = 8,
@@ -177,17 +180,20 @@ class PriorEstimator(BaseEstimator):
         """Fit to points (N, 2) in metres in the grid's CRS. Points off the grid are dropped and
         counted; points on structural zeros are dropped or the zeros softened (``on_zero``)."""
         self._check_params()
+        if self.spatial_bandwidth is not None and np.ndim(self.spatial_bandwidth) > 0:
+            return self._fit_bandwidths(features, points)
         t0 = time.perf_counter()
         pts = np.asarray(points, dtype=np.float64)
+        self.spatial_bandwidth_ = float(self.spatial_bandwidth) if self.spatial_bandwidth else None
         terms, starts = make_terms(features, self.template, self.features, self.flexible, self.bin_width, self.n_bins)
         stack = features
         loo = None
-        if self.spatial_bandwidth:
+        if self.spatial_bandwidth_:
             inside = _inside(features, pts)
             groups = None
             if self.spatial_block:
                 groups = block_ids(pts[inside], features.grid.bounds[:2], self.spatial_block)
-            logk, loo_in = log_kde_feature(features.grid, pts[inside], self.spatial_bandwidth, groups)
+            logk, loo_in = log_kde_feature(features.grid, pts[inside], self.spatial_bandwidth_, groups)
             loo = np.full(len(pts), np.nan)
             loo[inside] = loo_in
             stack = FeatureStack(features.grid, dict(features.features))
@@ -234,6 +240,7 @@ class PriorEstimator(BaseEstimator):
         self.fit_seconds_ = time.perf_counter() - t0
         self.pass_seconds_ = t_pass
         self._describe(full)
+        self.bandwidth_loglik_ = {self.spatial_bandwidth_: self.loglik_} if self.spatial_bandwidth_ else {}
         self.__dict__.pop("prior_", None)
         if counts["off_grid"] or counts["on_zero"]:
             warnings.warn(
@@ -242,6 +249,15 @@ class PriorEstimator(BaseEstimator):
                 f"({'dropped' if soften is None else f'zeros softened to {soften}'})",
                 stacklevel=2,
             )
+        return self
+
+    def _fit_bandwidths(self, features: FeatureStack, points: np.ndarray) -> PriorEstimator:
+        """Fit the hybrid at each candidate bandwidth; keep the best held-out-value log-likelihood."""
+        fits = [clone(self).set_params(spatial_bandwidth=float(b)).fit(features, points) for b in self.spatial_bandwidth]
+        best = max(fits, key=lambda e: e.loglik_)
+        self.__dict__.pop("prior_", None)
+        self.__dict__.update({k: v for k, v in best.__dict__.items() if k.endswith("_") and not k.startswith("_")})
+        self.bandwidth_loglik_ = {float(e.spatial_bandwidth): e.loglik_ for e in fits}
         return self
 
     def _describe(self, obj: Objective) -> None:
@@ -293,9 +309,9 @@ class PriorEstimator(BaseEstimator):
                 "loglik_nats": self.loglik_,
             }
         }
-        if self.spatial_bandwidth:
+        if self.spatial_bandwidth_:
             meta["learned"]["spatial_term"] = (
-                f"hybrid: also exp(gamma * log KDE(bandwidth {self.spatial_bandwidth:g} m)), "
+                f"hybrid: also exp(gamma * log KDE(bandwidth {self.spatial_bandwidth_:g} m)), "
                 f"gamma = {self.likelihoods_[SPATIAL]['gamma']:.4g}; not representable in this table"
             )
         self.model_ = LikelihoodModel(table_terms, meta)
@@ -305,7 +321,7 @@ class PriorEstimator(BaseEstimator):
     def prior_(self) -> TerrainPrior:
         """The fitted prior (density per m²) on the training grid, built on first use."""
         r = self.model_.evaluate(self.stack_)
-        if self.spatial_bandwidth:
+        if self.spatial_bandwidth_:
             r *= np.exp(self.likelihoods_[SPATIAL]["gamma"] * (self.stack_[SPATIAL].values - self.stack_[SPATIAL].values.max()))
         return TerrainPrior.from_array(r, self.stack_.grid, self.model_.to_dict())
 

@@ -17,7 +17,7 @@ from sklearn.base import clone
 
 from pipeline.atomic import atomic_paths
 from pipeline.build import build_features
-from pipeline.evaluate import CVResult, block_cv, default_bandwidths
+from pipeline.evaluate import CVResult, block_cv, default_bandwidths, hybrid_bandwidths
 from pipeline.kde import block_ids, fit_kde_cv
 from pipeline.learn import SPATIAL, PriorEstimator
 from pipeline.learn_config import LearnConfig, load_learn_config
@@ -65,7 +65,7 @@ class LearnReport:
         )
         if self.hybrid is not None:
             g = self.hybrid.likelihoods_[SPATIAL]["gamma"]
-            lines.append(f"hybrid: gamma = {g:.3f} on log KDE (bandwidth {self.hybrid.spatial_bandwidth:.0f} m)")
+            lines.append(f"hybrid: gamma = {g:.3f} on log KDE (bandwidth {self.hybrid.spatial_bandwidth_:.0f} m)")
         if self.cv is not None:
             s = self.cv.summary()
             lines.append(
@@ -121,7 +121,8 @@ def diagnostics(report: LearnReport) -> dict:
         "cell_combinations": int(len(est.cell_stats_.area)),
     }
     if report.hybrid is not None:
-        out["hybrid"] = fit_info(report.hybrid) | {"bandwidth_m": report.hybrid.spatial_bandwidth,
+        out["hybrid"] = fit_info(report.hybrid) | {"bandwidth_m": report.hybrid.spatial_bandwidth_,
+                                                   "bandwidth_loglik": report.hybrid.bandwidth_loglik_,
                                                    "block_m": report.hybrid.spatial_block}
     if report.cv is not None:
         out["cv"] = report.cv.summary()
@@ -157,7 +158,7 @@ def learn_region(
         used = pts[est.used_mask_]
         bws = np.asarray(lc.bandwidths_m) if lc.bandwidths_m else default_bandwidths(stack)
         bw = fit_kde_cv(used, block_ids(used, config.grid.bounds[:2], lc.block_size_m), bws).bandwidth
-        hyb = clone(est).set_params(spatial_bandwidth=float(bw), spatial_block=lc.block_size_m).fit(stack, pts)
+        hyb = clone(est).set_params(spatial_bandwidth=hybrid_bandwidths(bw), spatial_block=lc.block_size_m).fit(stack, pts)
     result = None
     if cv:
         models = ("uniform", "naive", "terrain", "kde", "hybrid") if lc.hybrid else ("uniform", "naive", "terrain", "kde")
