@@ -126,7 +126,7 @@ def make_surface(rng: np.random.Generator, dem: np.ndarray) -> tuple[list[shapel
     lo, hi = np.percentile(dem, [25, 75])
     materials = []
     for c in cells:
-        col, row = ~GRID.transform * (c.centroid.x, c.centroid.y)
+        col, row = GRID.to_pixel(c.centroid.x, c.centroid.y)
         z = dem[min(int(row), GRID.height - 1), min(int(col), GRID.width - 1)]
         p = [0.4, 0.2, 0.2, 0.2] if lo <= z <= hi else ([0.2, 0.1, 0.6, 0.1] if z > hi else [0.3, 0.4, 0.05, 0.25])
         materials.append(str(rng.choice(["soil", "sand", "rock", "clay"], p=p)))

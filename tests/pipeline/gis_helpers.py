@@ -54,6 +54,6 @@ def cell_boxes(transform: Affine, shape: tuple[int, int]) -> np.ndarray:
     """shapely boxes of every cell, (H, W)."""
     h, w = shape
     cols, rows = np.meshgrid(np.arange(w), np.arange(h))
-    x0, y0 = transform * (cols, rows)
-    x1, y1 = transform * (cols + 1, rows + 1)
+    x0, y0 = transform @ (cols, rows)
+    x1, y1 = transform @ (cols + 1, rows + 1)
     return shapely.box(np.minimum(x0, x1), np.minimum(y0, y1), np.maximum(x0, x1), np.maximum(y0, y1))

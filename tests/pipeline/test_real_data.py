@@ -98,7 +98,7 @@ def test_dem_reprojection_matches_the_source(built, swellendam: Path) -> None:
     lon, lat = Transformer.from_crs("EPSG:32734", "EPSG:4326", always_xy=True).transform(xc[rows, cols], yc[rows, cols])
     with rasterio.open(swellendam / "srtm_41_19_4326.tif") as src:
         band = src.read(1).astype(np.float64)
-        c, r = ~src.transform * (lon, lat)
+        c, r = ~src.transform @ (lon, lat)
 
     def bilinear(u: np.ndarray, v: np.ndarray) -> np.ndarray:
         u, v = u - 0.5, v - 0.5  # pixel centres sit at half-integers
