@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from numba import njit, prange
 
@@ -21,6 +22,9 @@ from tracker.motion import projected_cov_entry
 _MAX_AXIS_CELLS = 1 << 20
 # A dense cell->start table is used while it has at most this many cells per point.
 _DENSE_CELLS_PER_POINT = 8
+# Queries per thread below which a parallel launch costs more than it saves (on a loaded
+# machine a parallel region can wait tens of milliseconds for a descheduled worker).
+_QUERIES_PER_THREAD = 50_000
 
 
 @dataclass(frozen=True)
@@ -149,8 +153,18 @@ def _pair_test(t, r, tpos, tvel, tcov, ttime, tq, rpos, rcov, rtime, moving, gam
     return d2, d2 <= gamma - w_logdet * ld
 
 
+def query_grid(qpos, *args):
+    """:func:`query_grid_kernel` on as many threads as the number of queries warrants."""
+    before = numba.get_num_threads()
+    numba.set_num_threads(max(1, min(before, qpos.shape[0] // _QUERIES_PER_THREAD)))
+    try:
+        return query_grid_kernel(qpos, *args)
+    finally:
+        numba.set_num_threads(before)
+
+
 @njit(cache=True, parallel=True)
-def query_grid(qpos, qrad, query_is_track, origin, cell, dims, seg, keys, dense, table_seg, table,
+def query_grid_kernel(qpos, qrad, query_is_track, origin, cell, dims, seg, keys, dense, table_seg, table,
                tpos, tvel, tcov, ttime, tq, rpos, rcov, rtime, moving, gamma, w_logdet):
     """Exact-gated pairs between queries (rows of qpos, radius per bucket qrad (nq, K); a
     negative radius skips the bucket) and the grid's points.
