@@ -78,7 +78,8 @@ class FeatureSpec:
     - ``mask``: ``layers`` (vector), ``buffer_m`` (metres around lines/points, default 0),
       ``all_touched`` (default false), ``labels`` ([outside, inside], default ["no", "yes"]).
     - ``distance``: ``layers`` (vector) -> Euclidean distance in metres to the nearest cell they touch;
-      optional ``max_distance_m``.
+      optional ``max_distance_m``, ``margin_m`` (metres around the grid where the layers still count,
+      so a road just outside the bounds is not ignored; default 0).
     - ``slope``: ``layer`` (a DEM raster or point cloud) -> slope in degrees.
     - ``classes``: ``source`` (a continuous feature), ``breaks`` (ascending, units of the source),
       optional ``labels`` (one more than breaks) -> categories [-inf, b0), [b0, b1), ..., [bn, inf).
@@ -96,6 +97,7 @@ class FeatureSpec:
     all_touched: bool = False
     labels: tuple[str, ...] = ()
     max_distance_m: float | None = None
+    margin_m: float = 0.0
     source: str | None = None
     breaks: tuple[float, ...] = ()
     attribute: str | None = None
@@ -114,7 +116,7 @@ class FeatureSpec:
 FEATURE_TYPES: dict[str, tuple[set[str], set[str]]] = {
     # type: (required keys, optional keys) besides "type"
     "mask": ({"layers"}, {"buffer_m", "all_touched", "labels"}),
-    "distance": ({"layers"}, {"max_distance_m", "buffer_m", "all_touched"}),
+    "distance": ({"layers"}, {"max_distance_m", "margin_m", "buffer_m", "all_touched"}),
     "slope": ({"layer"}, set()),
     "classes": ({"source", "breaks"}, {"labels"}),
     "categories": ({"layer", "attribute"}, {"classes", "background"}),
@@ -288,6 +290,7 @@ def _parse_feature(source: Path, name: str, d: Any, layers: dict[str, LayerSpec]
             raise t.err("labels", f"a mask needs two labels [outside, inside], got {list(kw['labels'])}")
     if ftype == "distance":
         kw["max_distance_m"] = t.number("max_distance_m", None, positive=True)
+        kw["margin_m"] = t.number("margin_m", 0.0, nonneg=True)
     if ftype == "slope":
         kw["layers"] = layer_refs("layer", ("raster", "pointcloud"))
     if ftype == "classes":

@@ -297,3 +297,17 @@ def test_bundled_data_is_what_generate_py_makes(tmp_path: Path) -> None:
         assert list(new[2]) == list(old[2])
         for a, b in zip(new[3], old[3], strict=True):
             np.testing.assert_array_equal(a, b)
+
+
+def test_distance_margin_sees_roads_outside_the_grid(tmp_path: Path) -> None:
+    """A road 105 m north of the grid: without a margin it is invisible, with one the distance is exact."""
+    road = write_vector(tmp_path / "road.gpkg", [shapely.LineString([(499_000, 6_200_905), (502_000, 6_200_905)])])
+    feats = {"near": {"type": "distance", "layers": ["r"], "margin_m": 200.0},
+             "blind": {"type": "distance", "layers": ["r"]}}
+    cfg = load_config(small_region(tmp_path, feats, r=road))
+    with pytest.warns(UserWarning, match="no geometry touches the grid"):
+        stack = build_features(cfg, progress=False)
+    assert np.isinf(stack["blind"].values).all()
+    _, yc = cfg.grid.cell_centres()
+    # the road burns the padded row of cells 6_200_900..6_200_920 m, centre 6_200_910 m
+    np.testing.assert_allclose(stack["near"].values, 6_200_910.0 - yc, rtol=1e-12)
