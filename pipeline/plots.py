@@ -10,6 +10,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.colors import ListedColormap  # noqa: E402
+from scipy.ndimage import binary_dilation  # noqa: E402
 
 from pipeline.atomic import atomic_paths  # noqa: E402
 from pipeline.features import FeatureStack  # noqa: E402
@@ -41,11 +42,14 @@ def plot_prior(prior: TerrainPrior, path: str | Path) -> Path:
 
 
 def road_water_obstacles(stack: FeatureStack, road: str = "road_distance", water: str = "water",
-                         obstacles: str = "obstacles") -> np.ndarray:
-    """Figure 1's classes per cell: 0 open ground, 1 road, 2 water or obstacle (missing features skipped)."""
+                         obstacles: str = "obstacles", widen: bool = False) -> np.ndarray:
+    """Figure 1's classes per cell: 0 open ground, 1 road, 2 water or obstacle (missing features skipped);
+    ``widen`` draws roads one cell wider on each side."""
     classes = np.zeros(stack.grid.shape, dtype=np.int8)
     if road in stack:
         classes[stack[road].values <= 0] = 1
+        if widen:  # a 1-cell road vanishes when 700 cells are drawn on ~450 pixels
+            classes[binary_dilation(classes == 1, structure=np.ones((3, 3), dtype=bool))] = 1
     for name in (water, obstacles):
         if name in stack:
             classes[stack[name].values == 1] = 2
@@ -61,9 +65,9 @@ def plot_features(stack: FeatureStack, path: str | Path) -> Path:
     fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.9 * rows), squeeze=False)
     extent = _extent_km(stack.grid)
     ax = axes.flat[0]
-    ax.imshow(road_water_obstacles(stack), cmap=ListedColormap(["0.55", "white", "black"]), vmin=0, vmax=2,
+    ax.imshow(road_water_obstacles(stack, widen=max(stack.grid.shape) > 400), cmap=ListedColormap(["0.55", "white", "black"]), vmin=0, vmax=2,
               extent=extent, interpolation="nearest")
-    ax.set_title("roads (white), water and obstacles (black)")
+    ax.set_title("roads (white), water and obstacles (black)", fontsize=10)
     for ax, f in zip(axes.flat[1:], features, strict=False):
         if f.kind == "categorical":
             codes = f.codes()
