@@ -48,12 +48,22 @@ from dataclasses import dataclass, field
 
 import numba
 import numpy as np
-from numba import njit
 
 from pipeline.prior import TerrainPrior
-from tracker.hypotheses import MOTION_CV, ConstantVelocity, Hypotheses, MotionModel, Static
-from tracker.reports import Reports, check_gaussians, gaussian_product
-from tracker.sfunc import ExpS, PoissonS, SModel, log_s_ratio_code
+from tracker.hypotheses import ConstantVelocity, Hypotheses, MotionModel, Static
+from tracker.reports import Reports, check_gaussians
+from tracker.sfunc import ExpS, PoissonS, SModel
+from tracker.walk import (
+    CONFLICT,
+    DONE,
+    WIDEN,
+    build_report_grid,
+    decide,
+    fresh_pairs,
+    link_pairs,
+    pair_geometry,
+    walk,
+)
 
 VARIANTS = ("UU", "UT", "TT")
 GATE_PROB = 1.0 - 1e-9
@@ -63,8 +73,6 @@ BLOCK = 2048
 """Reports per block: larger blocks amortise gating, smaller ones conflict less."""
 _RMAX_SLACK = math.log(2.0)
 _LOG_2PI = math.log(2.0 * math.pi)
-
-_DONE, _CONFLICT, _WIDEN = 0, 1, 2
 
 Integrator = Callable[..., np.ndarray]
 Gater = Callable[..., tuple]
@@ -116,135 +124,6 @@ def _log(x: np.ndarray) -> np.ndarray:
         return np.log(np.maximum(x, 0.0))
 
 
-# ----------------------------------------------------------------------------- numba kernels
-
-
-@njit(cache=True, inline="always")
-def _pos_at(Hm, Hc, Ht, h, t, motion, q):
-    """Position mean and covariance (x, y, c00, c01, c11) of hypothesis h predicted to time t."""
-    if motion != MOTION_CV:
-        return Hm[h, 0], Hm[h, 1], Hc[h, 0, 0], Hc[h, 0, 1], Hc[h, 1, 1]
-    dt = t - Ht[h]
-    noise = q * abs(dt) ** 3 / 3.0
-    x = Hm[h, 0] + dt * Hm[h, 2]
-    y = Hm[h, 1] + dt * Hm[h, 3]
-    c00 = Hc[h, 0, 0] + 2.0 * dt * Hc[h, 0, 2] + dt * dt * Hc[h, 2, 2] + noise
-    c01 = Hc[h, 0, 1] + dt * (Hc[h, 0, 3] + Hc[h, 1, 2]) + dt * dt * Hc[h, 2, 3]
-    c11 = Hc[h, 1, 1] + 2.0 * dt * Hc[h, 1, 3] + dt * dt * Hc[h, 3, 3] + noise
-    return x, y, c00, c01, c11
-
-
-@njit(cache=True, inline="always")
-def _in_gate(Hm, Hc, Ht, h, z, V, t, motion, q, gamma):
-    x, y, c00, c01, c11 = _pos_at(Hm, Hc, Ht, h, t, motion, q)
-    s00 = c00 + V[0, 0]
-    s01 = c01 + V[0, 1]
-    s11 = c11 + V[1, 1]
-    det = s00 * s11 - s01 * s01
-    dx = z[0] - x
-    dy = z[1] - y
-    return (s11 * dx * dx - 2.0 * s01 * dx * dy + s00 * dy * dy) <= gamma * det
-
-
-@njit(cache=True)
-def _decide(j, c_h, c_score, c_mean, c_cov, c_logc, lo, hi, z, V, t, log_unseen, half_logdet_v,
-            Hm, Hc, Hlogc, Hcount, Ht, dirty, dirty_list, istate, fstate, gamma, check_gate,
-            terrain_ratio, log_rmax, s_kind, s_param, motion, vel_std, assign):
-    """Decide report j among candidates [lo, hi) and apply the estimation step.
-
-    istate = [N̂_D, n_dirty, k reports done]; fstate = [ln c_min, γ needed on _WIDEN].
-    """
-    n = istate[0]
-    best = -np.inf
-    arg = -1
-    for p in range(lo, hi):
-        if c_score[p] > best:
-            best = c_score[p]
-            arg = p
-    unseen = log_unseen[j] + log_s_ratio_code(s_kind, s_param, n, istate[2] + 1)
-    if check_gate and n > 0:
-        extra = log_rmax - fstate[0] if terrain_ratio else 0.0
-        const = -_LOG_2PI - half_logdet_v[j] + extra
-        top = max(best, unseen)
-        if const - 0.5 * gamma > top:
-            fstate[1] = 2.0 * (const - top) * (1.0 + 1e-12) + 1e-9
-            return _WIDEN
-    D = Hm.shape[1]
-    if arg < 0 or unseen > best:
-        h = n
-        Hm[h, :] = 0.0
-        Hc[h, :, :] = 0.0
-        Hm[h, 0] = z[j, 0]
-        Hm[h, 1] = z[j, 1]
-        for a in range(2):
-            for b in range(2):
-                Hc[h, a, b] = V[j, a, b]
-        if motion == MOTION_CV:
-            for a in range(2, D):
-                Hc[h, a, a] = vel_std * vel_std
-        Hlogc[h] = log_unseen[j]
-        Hcount[h] = 1
-        istate[0] = n + 1
-    else:
-        h = c_h[arg]
-        Hm[h, :] = c_mean[arg]
-        Hc[h, :, :] = c_cov[arg]
-        Hlogc[h] = c_logc[arg]
-        Hcount[h] += 1
-    Ht[h] = t[j]
-    if Hlogc[h] < fstate[0]:
-        fstate[0] = Hlogc[h]
-    if not dirty[h]:
-        dirty[h] = True
-        dirty_list[istate[1]] = h
-        istate[1] += 1
-    istate[2] += 1
-    assign[j] = h
-    return _DONE
-
-
-@njit(cache=True)
-def _walk(start, z, V, t, log_unseen, half_logdet_v, ptr, p_h, p_score, p_mean, p_cov, p_logc,
-          Hm, Hc, Hlogc, Hcount, Ht, dirty, dirty_list, istate, fstate, gamma, terrain_ratio,
-          log_rmax, s_kind, s_param, motion, q, vel_std, assign):
-    """Decide reports start.. of the block with the precomputed pair scores until one conflicts
-    with an earlier decision of the block (returns (j, _CONFLICT)) or needs a wider gate."""
-    for j in range(start, z.shape[0]):
-        for p in range(ptr[j], ptr[j + 1]):
-            if dirty[p_h[p]]:
-                return j, _CONFLICT
-        for i in range(istate[1]):
-            if _in_gate(Hm, Hc, Ht, dirty_list[i], z[j], V[j], t[j], motion, q, gamma):
-                return j, _CONFLICT
-        status = _decide(j, p_h, p_score, p_mean, p_cov, p_logc, ptr[j], ptr[j + 1], z, V, t,
-                         log_unseen, half_logdet_v, Hm, Hc, Hlogc, Hcount, Ht, dirty, dirty_list,
-                         istate, fstate, gamma, True, terrain_ratio, log_rmax, s_kind, s_param,
-                         motion, vel_std, assign)
-        if status != _DONE:
-            return j, status
-    return z.shape[0], _DONE
-
-
-@njit(cache=True)
-def _fresh_pairs(j, z, V, t, Hm, Hc, Ht, dirty_list, n_dirty, motion, q, gamma):
-    """(report, hypothesis) pairs in the gate between reports j.. and the dirty hypotheses."""
-    count = 0
-    for k in range(j, z.shape[0]):
-        for i in range(n_dirty):
-            if _in_gate(Hm, Hc, Ht, dirty_list[i], z[k], V[k], t[k], motion, q, gamma):
-                count += 1
-    rep = np.empty(count, np.int64)
-    hyp = np.empty(count, np.int64)
-    c = 0
-    for k in range(j, z.shape[0]):
-        for i in range(n_dirty):
-            if _in_gate(Hm, Hc, Ht, dirty_list[i], z[k], V[k], t[k], motion, q, gamma):
-                rep[c] = k
-                hyp[c] = dirty_list[i]
-                c += 1
-    return rep, hyp
-
-
 # ----------------------------------------------------------------------------- the tracker
 
 
@@ -265,23 +144,30 @@ def _one_thread_when_small(fn: Callable, size_arg: int) -> Callable:
     return run
 
 
-def _kalman_position_update(m: np.ndarray, P: np.ndarray, z: np.ndarray, V: np.ndarray):
-    """Kalman measurement update of (N, D) states by position reports (N, d): H = [I 0].
+class _PairPool:
+    """Scored (hypothesis, report) pairs of a block as a growable pool of per-report linked lists."""
 
-    Returns (posterior means, posterior covariances, ln G(z; H m, H P Hᵀ + V)). With D = d this is
-    :func:`tracker.reports.gaussian_product`, which the static model uses.
-    """
-    d = z.shape[1]
-    S = P[:, :d, :d] + V
-    S_inv = np.linalg.inv(S)
-    K = P[:, :, :d] @ S_inv
-    r = z - m[:, :d]
-    post_m = m + np.einsum("nij,nj->ni", K, r)
-    post_P = P - K @ P[:, :d, :]
-    post_P = 0.5 * (post_P + post_P.transpose(0, 2, 1))
-    maha = np.einsum("ni,nij,nj->n", r, S_inv, r)
-    log_g = -0.5 * (maha + np.linalg.slogdet(S)[1] + d * _LOG_2PI)
-    return post_m, post_P, log_g
+    def __init__(self, m: int, state_dim: int, capacity: int) -> None:
+        self.arrays = (
+            np.zeros(capacity, np.int64),
+            np.zeros(capacity),
+            np.zeros((capacity, state_dim)),
+            np.zeros((capacity, state_dim, state_dim)),
+            np.zeros(capacity),
+            np.zeros(capacity, np.int64),
+            np.full(m, -1, np.int64),
+        )
+
+    def add(self, rep, h, scored, hyp, istate, blk, j) -> None:
+        """Link new pairs (growing the pool when needed) and start a new refresh period at report j."""
+        need = int(istate[3]) + h.size
+        cap = self.arrays[0].shape[0]
+        if need > cap:
+            new_cap = max(need, 2 * cap)
+            self.arrays = tuple(
+                np.concatenate([a, np.zeros((new_cap - cap,) + a.shape[1:], a.dtype)]) for a in self.arrays[:6]
+            ) + (self.arrays[6],)
+        link_pairs(j, self.arrays, istate, rep, h, *scored, hyp, blk[5])
 
 
 def _s_model(tau: float | None, s_model: SModel | None) -> SModel:
@@ -412,23 +298,19 @@ class Tracker:
 
     # -- one block
 
-    def _score(self, h: np.ndarray, z: np.ndarray, V: np.ndarray, t: np.ndarray):
-        """Scores ln[G(z; a, A+V) ∫G(b,B)r / c] (ln G for UU/UT) of pairs (hypothesis h, report) from
-        the current hypotheses, with the posterior state, covariance and ln c of each pair."""
-        H = self.hypotheses_
-        a, A, log_c = H.means[h], H.covs[h], H.log_c[h]
-        if isinstance(self.motion, ConstantVelocity):
-            a, A = self.motion.predict(a, A, t - H.times[h])
-            post_m, post_c, log_g = _kalman_position_update(a, A, z, V)
-            if self.terrain_association and h.size:
-                log_c = _log(self.integrator(self.prior, a[:, :2], A[:, :2, :2]))
-        else:
-            post_m, post_c, log_g = gaussian_product(a, A, z, V)
+    def _score(self, rep: np.ndarray, h: np.ndarray, blk, hyp, cfg):
+        """Scores ln[G(z; a, A+V) ∫G(b,B)r / c] (ln G for UU/UT) of pairs (block report rep, hypothesis h)
+        from the current hypotheses, with the posterior state, covariance and ln c of each pair."""
+        log_g, post_m, post_c, pred_m, pred_c = pair_geometry(rep, h, blk, hyp, cfg)
         if not self.terrain_association:
             return log_g, post_m, post_c, np.full(h.size, self.log_u)
         if not h.size:
             return log_g, post_m, post_c, np.zeros(0)
-        log_i = _log(self.integrator(self.prior, post_m[:, :2], post_c[:, :2, :2]))
+        if isinstance(self.motion, ConstantVelocity):
+            log_c = _log(self.integrator(self.prior, pred_m, pred_c))
+        else:
+            log_c = self.hypotheses_.log_c[h]
+        log_i = _log(self.integrator(self.prior, post_m[:, :2], np.ascontiguousarray(post_c[:, :2, :2])))
         with np.errstate(invalid="ignore"):
             score = np.where(np.isfinite(log_i), log_g + log_i - log_c, -np.inf)
         return score, post_m, post_c, log_i
@@ -460,77 +342,53 @@ class Tracker:
         return h_all[d2 <= gamma]
 
     def _block(self, z, V, t, log_unseen) -> np.ndarray:
-        """Reports of one block in order: gate and score against the block-start state, walk, and on a
-        conflict refresh the pairs of the remaining reports with the hypotheses changed since the
-        last refresh (one scoring call per refresh, however many reports it serves)."""
+        """Reports of one block in order (see :mod:`tracker.walk`): gate and score against the
+        block-start state, walk, and on a conflict refresh the pairs of the remaining reports with the
+        hypotheses changed since the last refresh (one scoring call per refresh)."""
         H = self.hypotheses_
         m = z.shape[0]
         ptr, p_h = self._gate(z, V, t)
         p_rep = np.repeat(np.arange(m), np.diff(ptr))
-        pairs = self._score(p_h, z[p_rep], V[p_rep], t[p_rep])
+        pool = _PairPool(m, H.state_dim, max(2 * p_h.size, 64))
         H.reserve(m)
-        half_logdet_v = 0.5 * np.linalg.slogdet(V)[1]
         dirty = np.zeros(H.capacity, dtype=np.bool_)
-        dirty_list = np.zeros(m, dtype=np.int64)
+        hyp = (H._means, H._covs, H._log_c, H._counts, H._times, dirty, np.zeros(m, dtype=np.int64))
+        assign = np.full(m, -1, dtype=np.int64)
+        blk = (z, V, t, log_unseen, 0.5 * np.linalg.slogdet(V)[1], np.zeros(m, dtype=np.bool_), assign,
+               *build_report_grid(z, V, self.gamma), np.zeros(m, dtype=np.int64))
         if H.n:
             self._min_log_c = float(H.log_c.min())
-        istate = np.array([H.n, 0, self.n_reports_], dtype=np.int64)
+        istate = np.array([H.n, 0, self.n_reports_, 0], dtype=np.int64)
         fstate = np.array([self._min_log_c, 0.0])
-        assign = np.full(m, -1, dtype=np.int64)
-        s_kind, s_param = self.s_model.code
-        m_kind, q, vel_std = self.motion.code
-        store = (H._means, H._covs, H._log_c, H._counts, H._times)
+        cfg = self._cfg()
+        pool.add(p_rep, p_h, self._score(p_rep, p_h, blk, hyp, cfg), hyp, istate, blk, 0)
         self.stats_["blocks"] += 1
-        self.stats_["pairs"] += int(p_h.size)
         j = 0
         while j < m:
-            j, status = _walk(j, z, V, t, log_unseen, half_logdet_v, ptr, p_h, *pairs, *store, dirty,
-                              dirty_list, istate, fstate, self.gamma, self.terrain_association,
-                              self.log_rmax, s_kind, s_param, m_kind, q, vel_std, assign)
+            j, status = walk(j, blk, pool.arrays, hyp, istate, fstate, cfg)
             H.n = int(istate[0])
-            if status == _CONFLICT:
+            if status == CONFLICT:
                 self.stats_["conflicts"] += 1
-                n_dirty = int(istate[1])
-                f_rep, f_h = _fresh_pairs(j, z, V, t, store[0], store[1], store[4], dirty_list, n_dirty,
-                                          m_kind, q, self.gamma)
-                fresh = self._score(f_h, z[f_rep], V[f_rep], t[f_rep])
-                keep = (p_rep >= j) & ~dirty[p_h]
-                p_rep = np.concatenate([p_rep[keep], f_rep])
-                p_h = np.concatenate([p_h[keep], f_h])
-                order = np.lexsort((p_h, p_rep))
-                p_rep, p_h = p_rep[order], p_h[order]
-                pairs = tuple(np.concatenate([x[keep], f])[order] for x, f in zip(pairs, fresh, strict=True))
-                ptr = np.zeros(m + 1, np.int64)
-                np.cumsum(np.bincount(p_rep, minlength=m), out=ptr[1:])
-                self.stats_["pairs"] += int(f_h.size)
-                dirty[dirty_list[:n_dirty]] = False
-                istate[1] = 0
-            elif status == _WIDEN:
+                f_rep, f_h = fresh_pairs(j, blk, hyp, istate, cfg)
+                pool.add(f_rep, f_h, self._score(f_rep, f_h, blk, hyp, cfg), hyp, istate, blk, j)
+            elif status == WIDEN:
                 self.stats_["widened"] += 1
-                fresh_h = self._brute(np.arange(H.n), z[j], V[j], t[j], float(fstate[1]))
-                status = self._decide_fresh(j, fresh_h, z, V, t, log_unseen, half_logdet_v, dirty,
-                                            dirty_list, istate, fstate, assign)
-                if status != _DONE:
+                cand = self._brute(np.arange(H.n), z[j], V[j], t[j], float(fstate[1]))
+                c = self._score(np.full(cand.size, j), cand, blk, hyp, cfg)
+                status = decide(j, np.arange(cand.size), cand.size, cand, *c, False, blk, hyp, istate, fstate, cfg)
+                if status != DONE:
                     raise RuntimeError(f"report {j}: decision failed after widening the gate")
                 H.n = int(istate[0])
                 j += 1
+        self.stats_["pairs"] += int(istate[3])
         self.n_reports_ = int(istate[2])
         self._min_log_c = float(fstate[0])
         return assign
 
-    def _decide_fresh(self, j, cand_h, z, V, t, log_unseen, half_logdet_v, dirty, dirty_list, istate,
-                      fstate, assign) -> int:
-        """Decide report j among hypotheses ``cand_h`` (ascending), all scored from the current state,
-        without the gate check (the caller gated wide enough)."""
-        H = self.hypotheses_
-        rep = np.full(cand_h.size, j)
-        c = self._score(cand_h, z[rep], V[rep], t[rep])
+    def _cfg(self) -> tuple:
         s_kind, s_param = self.s_model.code
-        m_kind, _, vel_std = self.motion.code
-        return _decide(j, cand_h, *c, 0, cand_h.size, z, V, t, log_unseen, half_logdet_v,
-                       H._means, H._covs, H._log_c, H._counts, H._times, dirty, dirty_list, istate, fstate,
-                       self.gamma, False, self.terrain_association, self.log_rmax, s_kind, s_param,
-                       m_kind, vel_std, assign)
+        m_kind, q, vel_std = self.motion.code
+        return (self.gamma, self.terrain_association, self.log_rmax, s_kind, s_param, m_kind, q, vel_std)
 
     # -- outputs
 
