@@ -137,13 +137,67 @@ def locality_order(
 
 
 @nb.njit(cache=True, inline="always")
-def _ramp_integral(x, h):
-    """∫_{-∞}^{x} clamp(y, 0, h) dy - the building block of a parallelogram's overlap with [0, h]."""
-    if x <= 0.0:
-        return 0.0
-    if x <= h:
-        return 0.5 * x * x
-    return h * (x - 0.5 * h)
+def _disc_column(x):
+    """∫_0^x √(1-s²) ds: area under the upper half of the unit circle."""
+    return 0.5 * (x * np.sqrt(max(1.0 - x * x, 0.0)) + np.arcsin(x))
+
+
+@nb.njit(cache=True)
+def disc_band_area(ta, tb, a_lo, a_hi, b):
+    """Area of {ta <= x <= tb, x² + y² <= 1, a_lo + b x <= y <= a_hi + b x}: a strip of the unit
+    disc between two parallel lines (a grid's two edges across the strips, mapped to the disc)."""
+    pts = np.empty(6)
+    pts[0] = ta
+    pts[1] = tb
+    n = 2
+    # Where a line meets the circle: (1 + b²) x² + 2ab x + a² - 1 = 0.
+    for a in (a_lo, a_hi):
+        qa = 1.0 + b * b
+        qb = 2.0 * a * b
+        disc = qb * qb - 4.0 * qa * (a * a - 1.0)
+        if disc > 0.0:
+            r = np.sqrt(disc)
+            for x in ((-qb - r) / (2.0 * qa), (-qb + r) / (2.0 * qa)):
+                if ta < x < tb:
+                    pts[n] = x
+                    n += 1
+    pts = np.sort(pts[:n])
+    area = 0.0
+    for k in range(n - 1):
+        p, q = pts[k], pts[k + 1]
+        if q <= p:
+            continue
+        m = 0.5 * (p + q)
+        top = np.sqrt(max(1.0 - m * m, 0.0))
+        # On each piece the binding upper and lower bounds do not change: integrate them exactly.
+        if a_hi + b * m < top:
+            upper = a_hi * (q - p) + 0.5 * b * (q * q - p * p)
+            up_m = a_hi + b * m
+        else:
+            upper = _disc_column(q) - _disc_column(p)
+            up_m = top
+        if a_lo + b * m > -top:
+            lower = a_lo * (q - p) + 0.5 * b * (q * q - p * p)
+            lo_m = a_lo + b * m
+        else:
+            lower = -(_disc_column(q) - _disc_column(p))
+            lo_m = -top
+        if up_m > lo_m:
+            area += upper - lower
+    return area
+
+
+@nb.njit(cache=True, inline="always")
+def _strip_piece(th_a, th_b):
+    """Strip of the unit disc between u = sin θ_a and u = sin θ_b: edges, area centroid, half-height."""
+    ta = np.sin(th_a)
+    tb = np.sin(th_b)
+    ca = np.cos(th_a)
+    cb = np.cos(th_b)
+    area = th_b + tb * cb - th_a - ta * ca  # twice the strip's area
+    if not (area > 0.0 and tb > ta):
+        return ta, tb, 0.0, 0.0
+    return ta, tb, -2.0 / 3.0 * (cb * cb * cb - ca * ca * ca) / area, area / (2.0 * (tb - ta))
 
 
 @nb.njit(cache=True, inline="always")
@@ -151,62 +205,59 @@ def _ellipse_sum(sat, uc, vc, su, slope, half, extent, other, transposed, rho, n
     """R(ρ): the table's sum over the ellipse of Mahalanobis radius ρ, as ``ns`` strip rectangles.
 
     Strips run across u (columns, or rows when ``transposed``); the grid spans [0, ``extent``]
-    along u and [0, ``other``] along v. Strips are clipped exactly at the grid's u edges (area and
-    centroid of the clipped piece in closed form) and skipped when off the grid. A strip crossing
-    a v edge is taken as the parallelogram of its area along the ellipse's centre line; the
-    rectangle standing in for it is given the parallelogram's area inside the grid, against that edge.
+    along u and [0, ``other``] along v. When the ellipse crosses the grid's u edges its strips are
+    spread over the part between them (so none is wasted off the grid and the edges are cut
+    exactly, areas and centroids in closed form). A strip crossing
+    a v edge gets the exact area of its piece inside the grid (:func:`disc_band_area`), as a
+    rectangle against that edge.
     """
     width = rho * su
     shift = slope * width
     height = rho * half
-    t_min = -uc / width
-    t_max = (extent - uc) / width
+    t_lo = max(-uc / width, -1.0)
+    t_hi = min((extent - uc) / width, 1.0)
+    if t_hi <= t_lo:
+        return 0.0
+    clipped = t_lo > -1.0 or t_hi < 1.0
+    th_lo = np.arcsin(t_lo) if clipped else 0.0
+    th_step = (np.arcsin(t_hi) - th_lo) / ns if clipped else 0.0
     total = 0.0
-    for i in range(off, off + ns):
-        ta = t[i]
-        tb = t[i + 1]
-        if tb <= t_min or ta >= t_max:
-            continue
-        tm = tbar[i]
-        e = eta[i]
-        if ta < t_min or tb > t_max:
-            ta = max(ta, t_min)
-            tb = min(tb, t_max)
-            ca = np.sqrt(1.0 - ta * ta)
-            cb = np.sqrt(1.0 - tb * tb)
-            area = np.arcsin(tb) + tb * cb - np.arcsin(ta) - ta * ca
-            if not area > 0.0:
+    for i in range(ns):
+        if clipped:
+            # Spread the strips over the part of the ellipse between the grid's u edges.
+            ta, tb, tm, e = _strip_piece(th_lo + i * th_step, th_lo + (i + 1) * th_step)
+            if not e > 0.0:
                 continue
-            tm = -2.0 / 3.0 * (cb * cb * cb - ca * ca * ca) / area
-            e = area / (2.0 * (tb - ta))
-        hh = height * e
-        va = vc + shift * ta  # centre line at the strip's edges
-        vb = vc + shift * tb
-        v_lo = min(va, vb) - hh
-        v_hi = max(va, vb) + hh
-        if v_hi <= 0.0 or v_lo >= other:
-            continue
-        if v_lo >= 0.0 and v_hi <= other:
-            v0 = vc + shift * tm - hh
-            v1 = vc + shift * tm + hh
         else:
-            if abs(vb - va) > 1e-9 * hh:
-                inside = (
-                    _ramp_integral(vb + hh, other)
-                    - _ramp_integral(va + hh, other)
-                    - _ramp_integral(vb - hh, other)
-                    + _ramp_integral(va - hh, other)
-                ) / (vb - va)
-            else:
-                mid = 0.5 * (va + vb)
-                inside = min(mid + hh, other) - max(mid - hh, 0.0)
-            if v_lo < 0.0 and v_hi > other:
-                v0 = 0.5 * (other - inside)
-            elif v_lo < 0.0:
-                v0 = 0.0
-            else:
-                v0 = other - inside
-            v1 = v0 + inside
+            ta = t[off + i]
+            tb = t[off + i + 1]
+            tm = tbar[off + i]
+            e = eta[off + i]
+        hh = height * e
+        vm = vc + shift * tm
+        v0 = vm - hh
+        v1 = vm + hh
+        # The strip lies within the centre line at its edges ± height (conservative).
+        reach_lo = vc + min(shift * ta, shift * tb) - height
+        reach_hi = vc + max(shift * ta, shift * tb) + height
+        if reach_hi <= 0.0 or reach_lo >= other:
+            continue
+        if reach_lo < 0.0 or reach_hi > other:
+            # The grid's v edges are lines in the unit disc's coordinates (v = vc + shift x + height y).
+            inside = disc_band_area(ta, tb, -vc / height, (other - vc) / height, -shift / height)
+            inside *= height / (tb - ta)  # mean v-length of the piece inside the grid, in cells
+            if inside < 2.0 * hh * (1.0 - 1e-12):
+                if reach_lo < 0.0 and reach_hi > other:
+                    v0 = max(vm - 0.5 * inside, 0.0)
+                    v0 = min(v0, other - inside)
+                elif reach_lo < 0.0:
+                    v0 = 0.0
+                else:
+                    v0 = other - inside
+                v1 = v0 + inside
+            else:  # all of the piece is inside: keep its rectangle inside too
+                v0 = min(max(v0, 0.0), other - 2.0 * hh)
+                v1 = v0 + 2.0 * hh
         if transposed:
             total += sat_rect(sat, v0, v1, uc + width * ta, uc + width * tb)
         else:
@@ -221,38 +272,38 @@ def _maha2(du, dv, cuu, cuv, cvv, det):
 
 @nb.njit(cache=True)
 def grid_radii(uc, vc, cuu, cuv, cvv, w, h):
-    """Squared Mahalanobis distances from the mean to the nearest point and farthest corner of [0,w]x[0,h]."""
+    """Squared Mahalanobis distances from the mean to the grid [0,w]x[0,h] and which edges are nearer.
+
+    Returns (lo2, hi2, rows): lo2 to the grid's nearest point (0 inside), hi2 to its farthest
+    corner, and ``rows`` True when the nearer of the edges v = 0, v = h (as segments) is nearer
+    than the nearer of u = 0, u = w: strips then run across rows so those edges are cut exactly.
+    """
     det = cuu * cvv - cuv * cuv
     hi = 0.0
     for cu in (0.0, w):
         for cv in (0.0, h):
             hi = max(hi, _maha2(cu - uc, cv - vc, cuu, cuv, cvv, det))
-    if 0.0 <= uc <= w and 0.0 <= vc <= h:
-        return 0.0, hi
-    lo = np.inf
     # On an edge u = U the quadratic is least at dv = (cuv / cuu) du, clamped to the edge.
+    d_cols = np.inf
     for cu in (0.0, w):
         du = cu - uc
         dv = min(max(vc + cuv / cuu * du, 0.0), h) - vc
-        lo = min(lo, _maha2(du, dv, cuu, cuv, cvv, det))
+        d_cols = min(d_cols, _maha2(du, dv, cuu, cuv, cvv, det))
+    d_rows = np.inf
     for cv in (0.0, h):
         dv = cv - vc
         du = min(max(uc + cuv / cvv * dv, 0.0), w) - uc
-        lo = min(lo, _maha2(du, dv, cuu, cuv, cvv, det))
-    return lo, hi
+        d_rows = min(d_rows, _maha2(du, dv, cuu, cuv, cvv, det))
+    inside = 0.0 <= uc <= w and 0.0 <= vc <= h
+    return (0.0 if inside else min(d_cols, d_rows)), hi, d_rows < d_cols
 
 
 @nb.njit(cache=True, inline="always")
-def _orient(uc, vc, cuu, cvv, w, h):
-    """Strips across the axis whose grid edges are nearer (Mahalanobis), so those edges are exact.
-
-    Returns (transposed, strip-axis centre, other-axis centre, strip-axis σ, grid sizes along both).
-    """
-    su = np.sqrt(cuu)
-    sv = np.sqrt(cvv)
-    if min(abs(vc), abs(h - vc)) / sv < min(abs(uc), abs(w - uc)) / su:
-        return True, vc, uc, sv, h, w
-    return False, uc, vc, su, w, h
+def _orient(rows, uc, vc, cuu, cvv, w, h):
+    """(strip-axis centre, other-axis centre, strip-axis σ, grid size along it, along the other)."""
+    if rows:
+        return vc, uc, np.sqrt(cvv), h, w
+    return uc, vc, np.sqrt(cuu), w, h
 
 
 @nb.njit(cache=True, parallel=True)
@@ -261,7 +312,7 @@ def _terrace_kernel(sat, uc, vc, cuu, cuv, cvv, strips, offset, n_terraces, rho_
     w = float(sat.shape[1] - 1)
     r_grid = sat[sat.shape[0] - 1, sat.shape[1] - 1]
     for n in nb.prange(uc.shape[0]):
-        lo2, hi2 = grid_radii(uc[n], vc[n], cuu[n], cuv[n], cvv[n], w, h)
+        lo2, hi2, transposed = grid_radii(uc[n], vc[n], cuu[n], cuv[n], cvv[n], w, h)
         if lo2 > _FAR:
             out[n] = 0.0
             continue
@@ -269,7 +320,7 @@ def _terrace_kernel(sat, uc, vc, cuu, cuv, cvv, strips, offset, n_terraces, rho_
         whole = hi2 <= lo2 + rho_mass * rho_mass  # the terraces reach the far corner
         end = np.sqrt(hi2) if whole else np.sqrt(lo2 + rho_mass * rho_mass)
         sd = np.sqrt(cuu[n] * cvv[n] - cuv[n] * cuv[n])
-        transposed, a, b, saa, extent, other = _orient(uc[n], vc[n], cuu[n], cvv[n], w, h)
+        a, b, saa, extent, other = _orient(transposed, uc[n], vc[n], cuu[n], cvv[n], w, h)
         slope = cuv[n] / (saa * saa)
         half = sd / saa  # half-height of the unit ellipse at its centre column
         step = (end - lo) / n_terraces
@@ -302,7 +353,8 @@ def _paper_kernel(sat, uc, vc, cuu, cuv, cvv, strips, offset, rho, coef, t, tbar
     w = float(sat.shape[1] - 1)
     for n in nb.prange(uc.shape[0]):
         sd = np.sqrt(cuu[n] * cvv[n] - cuv[n] * cuv[n])
-        transposed, a, b, saa, extent, other = _orient(uc[n], vc[n], cuu[n], cvv[n], w, h)
+        transposed = grid_radii(uc[n], vc[n], cuu[n], cuv[n], cvv[n], w, h)[2]
+        a, b, saa, extent, other = _orient(transposed, uc[n], vc[n], cuu[n], cvv[n], w, h)
         acc = 0.0
         for k in range(rho.shape[0]):
             acc += coef[k] * _ellipse_sum(
