@@ -148,7 +148,7 @@ def build_region_prior(config: RegionConfig, model: LikelihoodModel | None = Non
 def write_features(stack: FeatureStack, out_dir: str | Path) -> list[Path]:
     """One GeoTIFF per feature in ``out_dir`` (``<name>.tif``), all renamed into place together.
 
-    Categorical: int16 codes, nodata ``NODATA_CODE``, the labels as a JSON tag ``LABELS``;
+    Categorical: int16 codes (int32 when a code needs it), nodata ``NODATA_CODE``, the labels as a JSON tag ``LABELS``;
     continuous: float32 in the tag ``UNITS``, nodata NaN.
     """
     out_dir = Path(out_dir)
@@ -161,9 +161,11 @@ def write_features(stack: FeatureStack, out_dir: str | Path) -> list[Path]:
     with atomic_paths(*finals) as temps:
         for f, tmp in zip(stack, temps, strict=True):
             if f.kind == "categorical":
-                profile = base | {"dtype": "int16", "nodata": NODATA_CODE}
+                small = f.values.size == 0 or np.iinfo(np.int16).max >= f.values.max()
+                dtype = "int16" if small else "int32"
+                profile = base | {"dtype": dtype, "nodata": NODATA_CODE}
                 tags = {"LABELS": json.dumps({str(k): v for k, v in f.labels.items()})}
-                data = f.values.astype(np.int16)
+                data = f.values.astype(dtype)
             else:
                 profile = base | {"dtype": "float32", "nodata": float("nan")}
                 tags = {"UNITS": f.units}

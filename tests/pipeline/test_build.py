@@ -256,6 +256,15 @@ def test_write_features_round_trip(tmp_path: Path) -> None:
         assert src.tags()["UNITS"] == "m"
 
 
+def test_write_features_keeps_large_codes(tmp_path: Path) -> None:
+    grid = Grid.from_bounds((0, 0, 40, 20), 20.0, "EPSG:32634")
+    stack = FeatureStack(grid)
+    stack.add(Feature("landcover", np.array([[7, 70_000]], dtype=np.int32), "categorical"))
+    (path,) = write_features(stack, tmp_path)
+    with rasterio.open(path) as src:
+        np.testing.assert_array_equal(src.read(1), [[7, 70_000]])
+
+
 def test_failed_feature_write_leaves_nothing(tmp_path: Path, monkeypatch) -> None:
     real_open = rasterio.open
     calls = []

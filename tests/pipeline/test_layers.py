@@ -75,6 +75,14 @@ def test_unknown_layer_lists_the_available_ones(tmp_path: Path) -> None:
         read_vector(spec(p, layer="rivers"), GRID)
 
 
+def test_several_layers_need_a_name(tmp_path: Path) -> None:
+    p = write_vector(tmp_path / "x.gpkg", [shapely.box(496_000, 6_233_000, 497_000, 6_234_000)], layer="lakes")
+    write_vector(p, [shapely.box(496_000, 6_233_000, 497_000, 6_234_000)], layer="ponds")
+    with pytest.raises(LayerError, match=r"x\.gpkg.*several layers \['lakes', 'ponds'\]; set layer"):
+        read_vector(spec(p), GRID)
+    assert read_vector(spec(p, layer="ponds"), GRID).geometries.size == 1
+
+
 def test_unknown_attribute(tmp_path: Path) -> None:
     p = write_vector(tmp_path / "x.gpkg", [shapely.box(496_000, 6_233_000, 497_000, 6_234_000)], {"kind": ["a"]})
     with pytest.raises(LayerError, match=r"x\.gpkg.*no attribute 'material'"):
