@@ -182,7 +182,7 @@ class PriorEstimator(BaseEstimator):
         self._check_params()
         if self.spatial_bandwidth is not None and np.ndim(self.spatial_bandwidth) > 0:
             return self._fit_bandwidths(features, points)
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         pts = np.asarray(points, dtype=np.float64)
         self.spatial_bandwidth_ = float(self.spatial_bandwidth) if self.spatial_bandwidth else None
         terms, starts = make_terms(features, self.template, self.features, self.flexible, self.bin_width, self.n_bins)
@@ -201,7 +201,7 @@ class PriorEstimator(BaseEstimator):
             terms.append(with_range(Term(SPATIAL, "loglinear", bin_width=SPATIAL_BIN), logk))
             starts.append({"gamma": 0.5})
         cells = cell_stats(stack, tuple(terms))
-        t_pass = time.perf_counter() - t0
+        t_pass, c_pass = time.perf_counter() - t0, time.process_time() - c0
         terms = [_with_reference(t, cells.level_area(k)) for k, t in enumerate(terms)]
         cells = dataclasses.replace(cells, terms=tuple(terms))
         pstats = point_stats(stack, tuple(terms), pts)
@@ -239,6 +239,8 @@ class PriorEstimator(BaseEstimator):
         self.fit_results_ = results
         self.fit_seconds_ = time.perf_counter() - t0
         self.pass_seconds_ = t_pass
+        self.fit_cpu_seconds_ = time.process_time() - c0
+        self.pass_cpu_seconds_ = c_pass
         self._describe(full)
         self.bandwidth_loglik_ = {self.spatial_bandwidth_: self.loglik_} if self.spatial_bandwidth_ else {}
         self.__dict__.pop("prior_", None)

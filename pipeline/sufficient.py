@@ -59,16 +59,19 @@ class Term:
     def index(self, values: np.ndarray) -> np.ndarray:
         """Level index (int64) of feature values; ``NODATA_INDEX`` for no data."""
         if self.form == "categorical":
-            codes = np.asarray(self.codes, dtype=np.int64)
-            order = np.argsort(codes)
-            pos = np.clip(np.searchsorted(codes[order], values), 0, len(codes) - 1)
-            idx = order[pos]
-            known = codes[idx] == values
-            nodata = values == NODATA_CODE
-            if np.any(~known & ~nodata):
-                bad = np.unique(values[~known & ~nodata])
+            # a look-up table over the code range: one gather per cell
+            lo = min(min(self.codes), NODATA_CODE)
+            lut = np.full(max(self.codes) - lo + 1, -2, dtype=np.int64)
+            lut[np.asarray(self.codes) - lo] = np.arange(len(self.codes))
+            lut[NODATA_CODE - lo] = NODATA_INDEX
+            v = np.asarray(values, dtype=np.int64) - lo
+            inside = (v >= 0) & (v < len(lut))
+            idx = lut[np.where(inside, v, 0)]
+            idx[~inside] = -2
+            if np.any(idx == -2):
+                bad = np.unique(np.asarray(values)[idx == -2])
                 raise ValueError(f"feature {self.feature!r}: codes {bad[:10].tolist()} are not in the term's {list(self.codes)}")
-            return np.where(known, idx, NODATA_INDEX)
+            return idx
         x = np.asarray(values, dtype=np.float64)
         nan = np.isnan(x)
         xs = np.where(nan, self.lo, x)
