@@ -124,12 +124,11 @@ def build_features(config: RegionConfig, progress: bool = True) -> FeatureStack:
 
 def build_prior(stack: FeatureStack, model: LikelihoodModel, provenance: dict | None = None) -> TerrainPrior:
     """The normalised prior r(x) ∝ Π r_i(F_i(x)) of a feature stack; ``provenance`` is stored with the model."""
-    r = np.ones(stack.grid.shape, dtype=np.float64)
-    for name, term in model.terms.items():
-        single = LikelihoodModel({name: term}).evaluate(stack)
-        if not single.any():
-            raise PriorError(f"[likelihood.{name}] is zero on every cell of the grid, so the prior would be zero everywhere")
-        r *= single
+    r = model.evaluate(stack)
+    if not r.any():  # name the culprit when one table alone zeroes the grid
+        for name, term in model.terms.items():
+            if not term(stack[name]).any():
+                raise PriorError(f"[likelihood.{name}] is zero on every cell of the grid, so the prior would be zero everywhere")
     description = model.to_dict()
     if provenance:
         description["provenance"] = provenance
