@@ -40,11 +40,12 @@ def static_scene(n: int, seed: int = 0):
             rng.uniform(0, side, (n, 2)), _covs(rng, n, 10, 100))
 
 
-def moving_scene(n: int, scan: float = 10.0, vmax: float = 300.0, seed: int = 0):
+def moving_scene(n: int, scan: float = 10.0, vmax: float = 300.0, seed: int = 0,
+                 per_km2: float = 1.0):
     """CV tracks at t=0 (speed uniform 0..vmax m/s), one report per track at a uniform time in
     [0, scan] s drawn from its true position plus noise. Returns the gate() arguments."""
     rng = np.random.default_rng(seed)
-    side = 1000.0 * np.sqrt(n)
+    side = 1000.0 * np.sqrt(n / per_km2)
     pos = rng.uniform(0, side, (n, 2))
     speed, heading = rng.uniform(0, vmax, n), rng.uniform(0, 2 * np.pi, n)
     vel = np.stack([speed * np.cos(heading), speed * np.sin(heading)], 1)
@@ -166,8 +167,9 @@ def bench_brute(n: int, subset: int, repeats: int) -> dict:
             "speedup": scaled / t_gate, "goal": 300.0}
 
 
-def bench_moving(n: int, repeats: int, ms: list[int]) -> dict:
-    tm, tc, rm, rc, rt = moving_scene(n)
+def bench_moving(n: int, repeats: int, ms: list[int], per_km2: float = 1.0) -> dict:
+    """Sweep M_D and both orientations; compare with the cost model's pick."""
+    tm, tc, rm, rc, rt = moving_scene(n, per_km2=per_km2)
     kw = dict(threshold=GAMMA, report_times=rt, process_noise=1.0)
     gate(tm[:10], tc[:10], rm[:10], rc[:10], threshold=GAMMA, report_times=rt[:10])
     sweep = {}
@@ -187,7 +189,9 @@ def bench_moving(n: int, repeats: int, ms: list[int]) -> dict:
     best_key = min(sweep, key=sweep.get)
     t_one = min(sweep["reports:1"], sweep["tracks:1"])
     return {
-        "n": n, "pairs": int(auto[0].size), "sweep_s": sweep, "chosen": chosen,
+        "n": n, "per_km2": per_km2, "pairs": int(auto[0].size), "sweep_s": sweep,
+        "chosen": chosen, "predicted_chosen_s": float(min(choice.cost_tracks.min(),
+                                                          choice.cost_reports.min())),
         "chosen_s": sweep[chosen], "auto_total_s": t_auto, "best": best_key,
         "best_s": sweep[best_key], "chosen_over_best": sweep[chosen] / sweep[best_key],
         "speedup_vs_md1": t_one / sweep[chosen], "goal_s": 1.5,
@@ -251,16 +255,19 @@ def run(quick: bool = False) -> dict:
     """All gating benchmarks; quick=True uses small scenes (< 60 s)."""
     n = 10_000 if quick else 100_000
     reps = 2 if quick else 3
+    sweep = [1, 2, 4, 8] if quick else [1, 2, 3, 4, 6, 8, 12, 16]
     out = {
         "static": bench_static(n, reps),
-        "moving": bench_moving(n, reps, [1, 2, 4, 8] if quick else [1, 2, 3, 4, 6, 8, 12, 16]),
+        "moving": bench_moving(n, 2, sweep),
+        "moving_dense": bench_moving(5000 if quick else 30_000, 2, sweep + [24, 32],
+                                     per_km2=100.0),
         "brute": bench_brute(n, 200 if quick else 1000, 1),
         "scaling": bench_scaling([1000, 3000, 10_000, 30_000] if quick else
                                  [1000, 3000, 10_000, 30_000, 100_000, 300_000, 1_000_000],
                                  30_000 if quick else 1_000_000),
         "cost_constants": costmodel.constants().__dict__,
     }
-    s, m, b = out["static"], out["moving"], out["brute"]
+    s, m, b, md = out["static"], out["moving"], out["brute"], out["moving_dense"]
     out["table"] = [
         f"static {n}x{n}: gate {s['gate_s']:.3f} s, cKDTree ref {s['ref_kdtree_s']:.3f} s "
         f"(2 workers {s['ref_kdtree_2workers_s']:.3f} s), BallTree {s['balltree_s']:.3f} s, "
@@ -268,6 +275,9 @@ def run(quick: bool = False) -> dict:
         f"moving {n}x{n} 10 s scan: auto {m['auto_total_s']:.3f} s, chosen {m['chosen']} "
         f"{m['chosen_s']:.3f} s, best {m['best']} {m['best_s']:.3f} s "
         f"(ratio {m['chosen_over_best']:.2f}), {m['speedup_vs_md1']:.1f}x over M_D=1",
+        f"moving {md['n']}x{md['n']} at 100/km^2: chosen {md['chosen']} {md['chosen_s']:.3f} s, "
+        f"best {md['best']} {md['best_s']:.3f} s (ratio {md['chosen_over_best']:.2f}), "
+        f"{md['speedup_vs_md1']:.1f}x over M_D=1",
         f"brute force (numpy, scaled from {b['subset']}) {b['brute_scaled_s']:.1f} s: "
         f"{b['speedup']:.0f}x",
         f"scaling log-log slope (n>=1e4): {out['scaling']['loglog_slope_n_ge_1e4']:.2f}",
