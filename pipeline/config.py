@@ -243,6 +243,9 @@ def _parse_layer(source: Path, name: str, d: Any) -> LayerSpec:
     kind = t.get("kind", str, _layer_kind(path))
     if kind not in ("vector", "raster", "pointcloud"):
         raise t.err("kind", f"must be vector, raster or pointcloud, got {kind!r}")
+    restore_index = t.get("restore_index", bool, False, "true or false")
+    if restore_index and path.suffix.lower() != ".shp":
+        raise t.err("restore_index", f"only Shapefiles (.shp) have an index to restore, {path.name} is not one")
     band = t.get("band", int, 1, "a band number")
     if band < 1:
         raise t.err("band", f"bands count from 1, got {band}")
@@ -252,7 +255,7 @@ def _parse_layer(source: Path, name: str, d: Any) -> LayerSpec:
         kind=kind,
         layer=t.get("layer", str, None),
         where=t.get("where", str, None),
-        restore_index=t.get("restore_index", bool, False, "true or false"),
+        restore_index=restore_index,
         band=band,
     )
 

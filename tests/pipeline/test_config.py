@@ -128,6 +128,7 @@ def test_geographic_grid_refused_with_hint(tmp_path: Path) -> None:
         (lambda d: d["layers"]["roads"].pop("path"), ["layers.roads.path", "missing"]),
         (lambda d: d["layers"]["roads"].update(restore_index="yes"), ["layers.roads.restore_index", "true or false"]),
         (lambda d: d["layers"]["dem"].update(kind="image"), ["layers.dem.kind"]),
+        (lambda d: d["layers"]["roads"].update(restore_index=True), ["layers.roads.restore_index", "roads.gpkg"]),
         (lambda d: d["features"]["road_distance"].update(layers=["highways"]), ["features.road_distance.layers", "no layer 'highways'"]),
         (lambda d: d["features"]["road_distance"].update(layers=["dem"]), ["features.road_distance.layers", "raster layer"]),
         (lambda d: d["features"]["slope"].update(type="gradient"), ["features.slope.type", "'gradient'"]),
