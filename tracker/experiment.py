@@ -323,3 +323,19 @@ def write_outputs(results: pd.DataFrame, summary: dict, out_dir: str | os.PathLi
     paths["table"] = str(out / "table1.md")
     paths["figures"] = [str(p) for p in write_figures(results, out, title=title)]
     return paths
+
+
+def run_and_write(
+    prior_path: str | os.PathLike,
+    out_dir: str | os.PathLike,
+    config: ExperimentConfig,
+    workers: int | None = None,
+    progress: bool = True,
+    title: str = "",
+) -> tuple[dict, dict]:
+    """The ``terrain-track experiment`` command: run, summarise, write; returns (summary, paths)."""
+    prior_path = Path(prior_path)
+    TerrainPrior.read(prior_path)  # fail fast, naming the file, before any worker starts
+    results = run_experiment(prior_path, config, workers=workers, progress=progress)
+    summary = summarise(results, config)
+    return summary, write_outputs(results, summary, out_dir, title=title or prior_path.stem)
