@@ -308,12 +308,24 @@ class Tracker:
             return log_g, post_m, post_c, np.zeros(0)
         if isinstance(self.motion, ConstantVelocity):
             log_c = _log(self.integrator(self.prior, pred_m, pred_c))
+            need = np.ones(h.size, bool)
         else:
             log_c = self.hypotheses_.log_c[h]
-        log_i = _log(self.integrator(self.prior, post_m[:, :2], np.ascontiguousarray(post_c[:, :2, :2])))
-        with np.errstate(invalid="ignore"):
-            score = np.where(np.isfinite(log_i), log_g + log_i - log_c, -np.inf)
+            need = self._needs_integral(log_g - log_c, blk[3][rep])
+        log_i = np.zeros(h.size)
+        log_i[need] = _log(self.integrator(self.prior, post_m[need, :2], np.ascontiguousarray(post_c[need, :2, :2])))
+        score = np.full(h.size, -np.inf)
+        ok = need & np.isfinite(log_i)
+        score[ok] = log_g[ok] + log_i[ok] - log_c[ok]
         return score, post_m, post_c, log_i
+
+    def _needs_integral(self, log_g_over_c: np.ndarray, log_unseen: np.ndarray) -> np.ndarray:
+        """Pairs whose bound ln G - ln c + ln r_max reaches previouslyUnseen. With S = e^{-nτ} the
+        unseen score ln ∫G(z,V)r - τ does not depend on the state, so a pair below it can neither be
+        chosen nor beat previouslyUnseen and its score is left at -inf (no integral)."""
+        if not isinstance(self.s_model, ExpS):
+            return np.ones(log_g_over_c.size, bool)
+        return log_g_over_c + self.log_rmax >= log_unseen - self.s_model.tau
 
     def _gate(self, z: np.ndarray, V: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Gated (hypothesis, report) pairs of the block against the current hypotheses, CSR by report."""

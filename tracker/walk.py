@@ -254,9 +254,12 @@ def decide(j, cand, nc, c_h, c_score, c_mean, c_cov, c_logc, check_gate, blk, hy
 
 
 @njit(cache=True)
-def _decide_uniform_now(j, nc, blk, pool, hyp, istate, fstate, cfg):
-    """UU/UT: decide a conflicted report at once (its scores need no integral): the unchanged pairs of
-    its list plus the changed hypotheses now in its gate, scored from the current state."""
+def _decide_now(j, nc, blk, pool, hyp, istate, fstate, cfg):
+    """Decide a conflicted report without leaving numba when no new integral is needed: the unchanged
+    pairs of its list plus the changed hypotheses now in its gate, scored from the current state.
+    UU/UT scores need no integral. TT (static): a changed hypothesis whose bound
+    ln G + ln r_max - ln c_q (∫G(b,B) r <= r_max) is below previouslyUnseen can neither be chosen nor
+    beat previouslyUnseen, so it needs no integral either; otherwise return CONFLICT, changing nothing."""
     p_h, p_score, p_mean, p_cov, p_logc, p_next, head = pool
     Hm, Hc, Hlogc, Hcount, Ht, dirty, dirty_list = hyp
     z, V, t = blk[0], blk[1], blk[2]
@@ -284,11 +287,21 @@ def _decide_uniform_now(j, nc, blk, pool, hyp, istate, fstate, cfg):
             c_cov[c] = p_cov[p]
             c += 1
         p = p_next[p]
+    terrain, log_rmax, s_kind, s_param = cfg[1], cfg[2], cfg[3], cfg[4]
+    if terrain and motion == MOTION_CV and n_fresh:
+        return CONFLICT  # the predicted normaliser c'_q needs an integral
+    unseen = blk[3][j] + log_s_ratio_code(s_kind, s_param, istate[0], istate[2] + 1)
     for i in range(istate[1]):
         h = dirty_list[i]
         if _in_gate(Hm, Hc, Ht, h, z, V, j, t, motion, q, gamma):
             c_h[c] = h
-            c_score[c] = _pair_geom(h, j, blk, hyp, cfg, c_mean[c], c_cov[c], pm, pc)
+            log_g = _pair_geom(h, j, blk, hyp, cfg, c_mean[c], c_cov[c], pm, pc)
+            if terrain:
+                if log_g + log_rmax - Hlogc[h] >= unseen:
+                    return CONFLICT
+                c_score[c] = -np.inf
+            else:
+                c_score[c] = log_g
             c += 1
     return decide(j, np.arange(total), total, c_h, c_score, c_mean, c_cov, c_logc, True, blk, hyp, istate, fstate, cfg)
 
@@ -301,7 +314,6 @@ def walk(start, blk, pool, hyp, istate, fstate, cfg):
     dirty = hyp[5]
     conflicted = blk[5]
     m = blk[0].shape[0]
-    terrain = cfg[1]
     for j in range(start, m):
         stale = conflicted[j]
         nc = 0
@@ -314,9 +326,7 @@ def walk(start, blk, pool, hyp, istate, fstate, cfg):
                     nc += 1
             p = p_next[p]
         if stale:
-            if terrain:
-                return j, CONFLICT
-            status = _decide_uniform_now(j, nc, blk, pool, hyp, istate, fstate, cfg)
+            status = _decide_now(j, nc, blk, pool, hyp, istate, fstate, cfg)
             if status != DONE:
                 return j, status
             continue
