@@ -148,8 +148,16 @@ class _Components:
             out[q] = idx
         return out
 
-    def gram(self, prior: TerrainPrior, integrator: Callable[..., np.ndarray]) -> ScoreGram:
-        return ScoreGram(prior, np.array(self.means), np.array(self.covs), np.array(self.terrain), integrator=integrator)
+    def gram(self, prior: TerrainPrior, integrator: Callable[..., np.ndarray], mixtures: Iterable[np.ndarray]) -> ScoreGram:
+        """The Gram matrix over the pairs that occur together in one of ``mixtures`` (component indices)."""
+        n = len(self.means)
+        needed = np.zeros((n, n), dtype=bool)
+        for members in mixtures:
+            mask = np.zeros(n, dtype=bool)
+            mask[members] = True
+            needed |= mask[:, None] & mask[None, :]
+        return ScoreGram(prior, np.array(self.means), np.array(self.covs), np.array(self.terrain),
+                         integrator=integrator, needed=needed)
 
 
 def run_dataset(prior_path: str | os.PathLike, seed: int, config: ExperimentConfig) -> list[dict]:
@@ -185,7 +193,7 @@ def run_dataset(prior_path: str | os.PathLike, seed: int, config: ExperimentConf
             members = comps.register(res.assignments, est.means, est.covs, variant != "UU")
             evaluations.append((variant, tau, res, members))
 
-    gram = comps.gram(prior, integrator)
+    gram = comps.gram(prior, integrator, (np.concatenate([members, ref]) for *_, members in evaluations))
     n = len(comps.means)
     w_ref = mixture_weights(n, ref, -1.0)
     records = []

@@ -43,7 +43,9 @@ class ScoreGram:
     bound G(a_i; a_j, A_i+A_j)·max(r)^p / (c_i^{t_i} c_j^{t_j}) is below ``tol``·min(K_ii, K_jj) are set
     to 0; ``skipped_bound`` (n, n) keeps those bounds so callers can bound the error of a score.
     Attributes: ``K`` (n, n) per m², ``log_c`` (n,) log normalisers (0 for plain Gaussians).
-    ``integrator(prior, means, covs, squared)`` defaults to the terrace integration.
+    ``integrator(prior, means, covs, squared)`` defaults to the terrace integration. ``needed``
+    (n, n) bool, optional: the pairs some scored mixture will use (others are not computed, and
+    :meth:`score` refuses weights that would need them).
     """
 
     def __init__(
@@ -54,6 +56,7 @@ class ScoreGram:
         terrain: np.ndarray,
         tol: float = 1e-9,
         integrator: Integrator | None = None,
+        needed: np.ndarray | None = None,
     ) -> None:
         self._integrator = integrator or _terrace_integrate
         means = np.asarray(means, dtype=np.float64)
@@ -71,8 +74,15 @@ class ScoreGram:
                 idx = np.flatnonzero(terrain)[bad]
                 raise ValueError(f"ScoreGram: components {idx[:10].tolist()} have no prior mass (∫G·r = 0); they cannot be normalised")
             self.log_c[terrain] = np.log(c)
-        # Upper triangle including the diagonal.
-        iu, ju = np.triu_indices(n)
+        if needed is None:
+            self.needed = np.ones((n, n), dtype=bool)
+        else:
+            self.needed = np.asarray(needed, dtype=bool) | np.eye(n, dtype=bool)
+            if self.needed.shape != (n, n):
+                raise ValueError(f"ScoreGram: needed must be ({n}, {n}), got {self.needed.shape}")
+            self.needed = self.needed | self.needed.T
+        # Needed pairs of the upper triangle, diagonal included.
+        iu, ju = np.nonzero(np.triu(self.needed))
         m, M, log_g = gaussian_product(means[ju], covs[ju], means[iu], covs[iu])
         p = terrain[iu].astype(int) + terrain[ju].astype(int)
         log_rmax = np.log(float(np.max(prior.density)))
@@ -109,6 +119,9 @@ class ScoreGram:
         wᵀKw is clipped at 0: terrace integrals are approximate, so K need not be exactly PSD.
         """
         w = np.asarray(weights, dtype=np.float64)
+        support = np.flatnonzero(w)
+        if not self.needed[np.ix_(support, support)].all():
+            raise ValueError("ScoreGram.score: the weights use component pairs outside `needed`")
         s2 = float(w @ self.K @ w)
         return float(np.sqrt(max(s2, 0.0))), float(np.abs(w) @ self.skipped_bound @ np.abs(w))
 

@@ -177,3 +177,18 @@ def test_score_gram_skips_only_negligible_pairs() -> None:
     w = np.array([1.0, -1.0, 0.5])
     s, err = gram.score(w)
     assert err < 1e-9 * s**2
+
+
+def test_score_gram_needed_pairs() -> None:
+    prior = _score_prior()
+    rng = np.random.default_rng(24)
+    means, covs = _gaussians(rng, 4)
+    needed = np.zeros((4, 4), bool)
+    needed[np.ix_([0, 1], [0, 1])] = True
+    needed[np.ix_([2, 3], [2, 3])] = True
+    full = ScoreGram(prior, means, covs, np.ones(4, bool), integrator=reference_integrate)
+    part = ScoreGram(prior, means, covs, np.ones(4, bool), integrator=reference_integrate, needed=needed)
+    w = np.array([0.5, -0.5, 0.0, 0.0])
+    assert part.score(w)[0] == pytest.approx(full.score(w)[0], rel=1e-12)
+    with pytest.raises(ValueError, match="outside `needed`"):
+        part.score(np.array([0.5, 0.0, -0.5, 0.0]))
