@@ -32,13 +32,12 @@ from pipeline.likelihood import (
     LikelihoodModel,
     RoadDistanceLikelihood,
 )
-from pipeline.poisson import FitResult, Objective, fit, term_params
+from pipeline.poisson import Objective, fit, term_params
 from pipeline.prior import TerrainPrior
 from pipeline.sufficient import (
     CONTINUOUS_FORMS,
     DISCRETE_FORMS,
     NODATA_INDEX,
-    CellStats,
     PointStats,
     Term,
     cell_stats,
@@ -420,4 +419,4 @@ def _block_diag(blocks: list[np.ndarray]) -> np.ndarray:
     return out
 
 
-__all__ = ["PriorEstimator", "make_terms", "SPATIAL", "CellStats", "FitResult"]
+__all__ = ["PriorEstimator", "make_terms", "SPATIAL"]

@@ -49,13 +49,11 @@ class TermParams:
         out[self.free] = theta
         return out
 
-    def logr(self, theta: np.ndarray, index: np.ndarray, value: np.ndarray | None) -> np.ndarray:
-        """log r per row; ``value=None`` (cells) evaluates continuous terms once per fine bin."""
+    def logr(self, theta: np.ndarray, index: np.ndarray, value: np.ndarray) -> np.ndarray:
+        """log r per row (points, or fine bins) from level indices and exact values."""
         t = self.term
         if t.form in DISCRETE_FORMS:
             return self.lut(theta)[index]
-        if value is None:
-            return self.cell_lut(theta)[index]
         lognd = self.lut_nodata
         if t.form == "road":
             r = road_likelihood(value, np.exp(theta[0]), theta[1])
@@ -74,11 +72,11 @@ class TermParams:
     def lut_nodata(self) -> float:
         return float(np.log(self.term.nodata)) if self.term.nodata > 0 else -np.inf
 
-    def grad(self, theta: np.ndarray, index: np.ndarray, value: np.ndarray | None, weight: np.ndarray) -> np.ndarray:
-        """Σ_c weight_c ∂ log r_c / ∂θ over rows (cells combos or points; ``value=None`` as in :meth:`logr`)."""
+    def grad(self, theta: np.ndarray, index: np.ndarray, value: np.ndarray, weight: np.ndarray) -> np.ndarray:
+        """Σ_i weight_i ∂ log r_i / ∂θ over rows (distinct point rows)."""
         t = self.term
         ok = index >= 0
-        if t.form in DISCRETE_FORMS or value is None:
+        if t.form in DISCRETE_FORMS:
             return self.grad_levels(theta, np.bincount(index[ok], weights=weight[ok], minlength=t.n_levels))
         return self._grad_values(theta, value[ok], weight[ok])
 
@@ -167,14 +165,6 @@ class Objective:
 
     def split(self, x: np.ndarray) -> list[np.ndarray]:
         return [x[self.offsets[j] : self.offsets[j + 1]] for j in range(len(self.active))]
-
-    def log_r(self, x: np.ndarray, on_cells: bool) -> np.ndarray:
-        """log r per cell combination or per point."""
-        s = self.cells if on_cells else self.points
-        out = np.zeros(s.index.shape[0])
-        for th, k in zip(self.split(x), self.active, strict=True):
-            out += self.params[k].logr(th, s.index[:, k], None if on_cells else s.value[:, k])
-        return out
 
     def points_sum(self, x: np.ndarray) -> float:
         """Σ_i log r(x_i) from the distinct rows."""

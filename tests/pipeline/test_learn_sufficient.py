@@ -9,7 +9,11 @@ from hypothesis import strategies as st
 from scipy.optimize import approx_fprime
 
 from pipeline.learn import PriorEstimator, make_terms
-from pipeline.likelihood import BinnedLikelihood, CategoricalLikelihood, LikelihoodModel, RoadDistanceLikelihood
+from pipeline.likelihood import (
+    BinnedLikelihood,
+    CategoricalLikelihood,
+    LikelihoodModel,
+)
 from pipeline.poisson import Objective, term_params
 from pipeline.prior import TerrainPrior
 from pipeline.sufficient import cell_stats, point_stats
