@@ -16,8 +16,9 @@ upward; per cell the unit normals are averaged and the slope is the angle of the
 vertical, in degrees. Averaging normals rather than angles keeps noise on flat ground from
 reading as slope (angles are >= 0, so their mean is biased upward).
 
-Cells without points are filled by linear interpolation (Delaunay) from the filled cells around the
-gaps, and from the nearest filled cell outside their convex hull; ``count`` tells which cells had data.
+Cells without points are filled by harmonic interpolation (the discrete Laplace equation with the
+cells that have points as boundary values): smooth, exact for planes unless a grid corner is
+empty, one sparse solve for all gaps; ``count`` tells which cells had data.
 """
 
 from __future__ import annotations
@@ -26,9 +27,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy import ndimage
-from scipy.interpolate import griddata
-from scipy.spatial import QhullError
+from scipy import sparse
+from scipy.sparse.linalg import spsolve
 
 from pipeline.grid import Grid
 
@@ -91,25 +91,42 @@ def _cells(points: np.ndarray, grid: Grid) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _fill_gaps(values: np.ndarray, known: np.ndarray) -> np.ndarray:
-    """Fill cells where ``known`` is False: linear between the known cells on the gaps' rims, else nearest."""
+    """Fill the cells where ``known`` is False by harmonic interpolation from the known cells.
+
+    Each gap cell equals the mean of its two neighbours along every axis where both exist (the
+    discrete Laplace equation; on an edge, along the edge only). A plane satisfies every such
+    equation, so planes are reproduced exactly, gaps on edges included. A gap in a grid corner
+    has no complete pair and takes the mean of its neighbours, which is not exact for planes.
+    One sparse solve for all gaps; every gap touches a known cell, so the system is non-singular.
+    """
     if known.all():
         return values
+    h, w = values.shape
+    gr, gc = np.nonzero(~known)
+    n = gr.size
+    index = np.full((h, w), -1, dtype=np.int64)
+    index[gr, gc] = np.arange(n)
+    horizontal = (gc > 0) & (gc < w - 1)
+    vertical = (gr > 0) & (gr < h - 1)
+    corner = ~horizontal & ~vertical
+    diag = np.zeros(n)
+    rhs = np.zeros(n)
+    rows, cols = [], []
+    for dr, dc, axis_ok in ((0, -1, horizontal), (0, 1, horizontal), (-1, 0, vertical), (1, 0, vertical)):
+        nr, nc = gr + dr, gc + dc
+        use = (axis_ok | corner) & (nr >= 0) & (nr < h) & (nc >= 0) & (nc < w)
+        eq = np.nonzero(use)[0]
+        nr, nc = nr[use], nc[use]
+        diag[eq] += 1.0
+        unknown = index[nr, nc]
+        is_unknown = unknown >= 0
+        rows.append(eq[is_unknown])
+        cols.append(unknown[is_unknown])
+        np.add.at(rhs, eq[~is_unknown], values[nr[~is_unknown], nc[~is_unknown]])
+    rows, cols = np.concatenate(rows), np.concatenate(cols)
+    a = sparse.csr_matrix((-np.ones(rows.size), (rows, cols)), shape=(n, n)) + sparse.diags(diag)
     out = values.copy()
-    gaps = ~known
-    rim = known & ndimage.binary_dilation(gaps, structure=np.ones((3, 3), dtype=bool))
-    rr, rc = np.nonzero(rim)
-    gr, gc = np.nonzero(gaps)
-    if rr.size >= 3:
-        try:
-            out[gr, gc] = griddata((rr, rc), values[rr, rc], (gr, gc), method="linear")
-        except QhullError:  # rim cells all on one line: no triangles to interpolate in
-            out[gr, gc] = np.nan
-    else:
-        out[gr, gc] = np.nan
-    missing = np.isnan(out)
-    if missing.any():
-        _, (ir, ic) = ndimage.distance_transform_edt(missing, return_indices=True)
-        out[missing] = out[ir[missing], ic[missing]]
+    out[gr, gc] = spsolve(a.tocsc(), rhs)
     return out
 
 
@@ -154,6 +171,10 @@ def lidar_surface(
         raise LidarError(f"method must be 'plane', 'mean' or 'lowest', got {method!r}")
     if not 0 <= percentile <= 100:
         raise LidarError(f"percentile must be in [0, 100], got {percentile}")
+    if normal_radius is not None and not normal_radius > 0:
+        raise LidarError(f"normal_radius must be a positive distance in metres, got {normal_radius}")
+    if not max_nn >= 3:
+        raise LidarError(f"max_nn must be at least 3 neighbours to fit a plane, got {max_nn}")
     cell, inside = _cells(points, grid)
     if cell.size == 0:
         raise LidarError(f"{name}: none of its {points.shape[0]} points falls on the grid {grid.bounds}")

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from pipeline.grid import Grid
-from pipeline.lidar import LidarError, lidar_surface, read_point_cloud
+from pipeline.lidar import LidarError, _fill_gaps, lidar_surface, read_point_cloud
 
 o3d = pytest.importorskip("open3d")
 
@@ -64,14 +66,15 @@ def test_paraboloid():
     np.testing.assert_allclose(s.slope[1:-1, 1:-1], want[1:-1, 1:-1], atol=0.5)
 
 
-def test_gap_is_interpolated():
+def test_gaps_are_interpolated():
+    """An inner hole and a strip along the grid's edge: the harmonic fill reproduces a plane exactly."""
     points = sample(plane, 12000, seed=2)
     u, v = GRID.to_pixel(points[:, 0], points[:, 1])
     hole = (u >= 10) & (u < 16) & (v >= 5) & (v < 9)
-    s = lidar_surface(points[~hole], GRID)
-    assert (s.count[5:9, 10:16] == 0).all()
+    edge = (u >= 20) & (u < 35) & (v >= 27)
+    s = lidar_surface(points[~(hole | edge)], GRID)
+    assert (s.count[5:9, 10:16] == 0).all() and (s.count[27:, 20:35] == 0).all()
     xc, yc = GRID.cell_centres()
-    # linear interpolation of a plane is the plane
     np.testing.assert_allclose(s.elevation, plane(xc, yc), atol=1e-9)
     np.testing.assert_allclose(s.slope, PLANE_SLOPE, atol=1e-6)
 
@@ -131,3 +134,25 @@ def test_bad_arguments():
         lidar_surface(points, GRID, method="median")
     with pytest.raises(LidarError, match=r"\(N, 3\)"):
         lidar_surface(points[:, :2], GRID)
+    with pytest.raises(LidarError, match="percentile"):
+        lidar_surface(points, GRID, method="lowest", percentile=101)
+    with pytest.raises(LidarError, match="normal_radius"):
+        lidar_surface(points, GRID, normal_radius=0.0)
+    with pytest.raises(LidarError, match="max_nn"):
+        lidar_surface(points, GRID, max_nn=2)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    shape=st.tuples(st.integers(2, 15), st.integers(2, 15)),
+    seed=st.integers(0, 2**32 - 1),
+    density=st.floats(0.05, 0.95),
+)
+def test_fill_gaps_reproduces_planes(shape, seed, density):
+    """Any gap pattern that leaves the four grid corners known: the fill is the plane itself."""
+    rng = np.random.default_rng(seed)
+    known = rng.random(shape) < density
+    known[[0, 0, -1, -1], [0, -1, 0, -1]] = True
+    r, c = np.indices(shape)
+    values = 0.37 * c - 1.3 * r + 4.0
+    np.testing.assert_allclose(_fill_gaps(np.where(known, values, np.nan), known), values, atol=1e-9)
