@@ -370,7 +370,7 @@ def _write_prior(r_store: NpyRows, total_r: float, grid: Grid, t_sat: Path, t_sa
             carry, carry2 = block[-1].copy(), block2[-1].copy()
         dst.update_tags(MODEL=json.dumps(description), UNITS="probability density per square metre")
     rasterio.shutil.copy(
-        plain, t_tif, driver="COG", COMPRESS="DEFLATE", PREDICTOR="YES", BLOCKSIZE=256,
+        plain, t_tif, driver="COG", COMPRESS="DEFLATE", BLOCKSIZE=256,
         OVERVIEW_RESAMPLING="AVERAGE", NUM_THREADS="ALL_CPUS", BIGTIFF="IF_SAFER",
     )
 
