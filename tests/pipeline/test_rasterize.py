@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import shapely
 from affine import Affine
-from hypothesis import assume, given, settings
+from hypothesis import assume, example, given, settings
 from hypothesis import strategies as st
 
 from pipeline import rasterize
@@ -17,6 +17,7 @@ from tests.pipeline.gis_helpers import cell_boxes
 GRID = Grid("EPSG:32634", Affine(20.0, 0.0, 1000.0, 0.0, -25.0, 2600.0), 24, 30)
 XC, YC = GRID.cell_centres()
 BOXES = cell_boxes(GRID.transform, GRID.shape)
+INTERIORS = shapely.buffer(BOXES, -1e-6, join_style="mitre")
 
 
 def near_boundary(geom, tol: float = 1e-6) -> np.ndarray:
@@ -63,12 +64,15 @@ def test_buffered_line_mask(pts, width) -> None:
 
 @settings(max_examples=40, deadline=None)
 @given(st.lists(coords, min_size=2, max_size=6))
+@example(pts=[(950.0, 2000.0), (1001.0, 2000.0)])  # along the grid's southern edge
+@example(pts=[(1040.0, 2100.0), (1040.0, 2500.0)])  # along an inner cell edge
 def test_all_touched_line_mask_covers_every_crossed_cell(pts) -> None:
     line = shapely.LineString(pts)
     if line.length == 0:
         return
     m = rasterize.mask(np.array([line]), GRID, all_touched=True)
-    crossed = shapely.length(shapely.intersection(BOXES, line)) > 1e-6  # the line runs through the cell
+    # the line runs through the cell's interior (a line along a cell edge belongs to either side)
+    crossed = shapely.length(shapely.intersection(INTERIORS, line)) > 1e-6
     touching = shapely.intersects(shapely.buffer(BOXES, 1e-6), line)  # or at least meets its closure
     assert np.all(m[crossed]), "a cell the road crosses is missing from the all_touched mask"
     assert not np.any(m & ~touching), "the mask marks a cell the road never touches"
@@ -77,7 +81,7 @@ def test_all_touched_line_mask_covers_every_crossed_cell(pts) -> None:
 def test_mask_without_all_touched_can_miss_thin_lines() -> None:
     """Why roads are burned all_touched: a diagonal line clips corners that centre-sampling skips."""
     line = shapely.LineString([(1000.0, 2600.0), (1600.0, 2000.0)])
-    crossed = shapely.length(shapely.intersection(BOXES, line)) > 1e-6
+    crossed = shapely.length(shapely.intersection(INTERIORS, line)) > 1e-6
     assert rasterize.mask(np.array([line]), GRID, all_touched=True)[crossed].all()
     assert not rasterize.mask(np.array([line]), GRID)[crossed].all()
 
