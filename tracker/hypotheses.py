@@ -75,17 +75,6 @@ class ConstantVelocity:
         P = F @ covs @ F.transpose(0, 2, 1) + self.q * Q
         return m, 0.5 * (P + P.transpose(0, 2, 1))
 
-    def initial(self, z: np.ndarray, V: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """States and covariances of new hypotheses started from reports (z, V)."""
-        d = self.pos_dim
-        n = z.shape[0]
-        m = np.zeros((n, 2 * d))
-        m[:, :d] = z
-        P = np.zeros((n, 2 * d, 2 * d))
-        P[:, :d, :d] = V
-        P[:, d:, d:] = self.velocity_std**2 * np.eye(d)
-        return m, P
-
 
 MotionModel = Static | ConstantVelocity
 
