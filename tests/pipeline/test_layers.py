@@ -135,7 +135,7 @@ def _stale_shapefile(folder: Path) -> Path:
 
 
 def test_stale_shapefile_index_warns_then_restores_on_a_copy(tmp_path: Path) -> None:
-    """This GDAL reads the short record as a missing shape (Swellendam's raises; tested in test_real_data)."""
+    """GDAL reads this short record as a missing shape, silently (Swellendam's raises; see test_real_data)."""
     p = _stale_shapefile(tmp_path)
     before = tree_hashes(tmp_path, "lakes.*")
     with pytest.warns(LayerWarning) as record:
