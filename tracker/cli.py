@@ -6,6 +6,7 @@ A thin argparse layer: one function per subcommand, each parses nothing itself a
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 from pathlib import Path
 
@@ -48,10 +49,46 @@ def add_run_parser(sub) -> None:
     p.set_defaults(func=cmd_run)
 
 
+def cmd_experiment(args: argparse.Namespace) -> None:
+    from tracker.experiment import ExperimentConfig, parse_taus, run_and_write
+    from tracker.simulate import AirborneSensor
+
+    config = ExperimentConfig(
+        n_datasets=args.datasets, n_reports=args.reports, taus=parse_taus(args.tau),
+        variants=tuple(args.variants.split(",")), n_targets=args.targets, base_seed=args.seed,
+        sensor=AirborneSensor(azimuth_std_rad=args.azimuth_std_mrad / 1000.0, range_std_m=args.range_std_m),
+    )
+    summary, paths = run_and_write(args.prior, args.out, config, workers=args.workers, progress=not args.quiet)
+    for v, d in summary["variants"].items():
+        print(f"{v}: best tau {d['best_tau']:+.2f}, mean score x10^4.5 {d['best_mean_score_x10^4.5']:.2f}, "
+              f"|N_D^ - N_D| {d['mean_nd_abs_error_at_best_tau']:.2f}")
+    print(f"wrote {paths['results']}, {paths['summary']}, {paths['table']} and {len(paths['figures'])} figures")
+
+
+def add_experiment_parser(sub) -> None:
+    p = sub.add_parser("experiment", help="paper 1's simulation: UU, UT, TT over a tau grid on seeded data sets")
+    # Let "--tau -3:3:0.25" through: argparse would otherwise take "-3:3:0.25" for an option.
+    p._negative_number_matcher = re.compile(r"^-\d[\d.:,-]*$|^-\.\d[\d.:,-]*$")
+    p.add_argument("--prior", type=Path, required=True, help="prior GeoTIFF (terrain-prior build)")
+    p.add_argument("--datasets", type=int, default=28, help="number of data sets (seeds seed..seed+n-1); default 28")
+    p.add_argument("--reports", type=int, default=100, help="reports per data set; default 100")
+    p.add_argument("--tau", default="-3:3:0.25", help="start:stop:step (stop included) or a comma list; default -3:3:0.25")
+    p.add_argument("--variants", default="UU,UT,TT", help="comma list of UU, UT, TT")
+    p.add_argument("--targets", type=int, default=200, help="targets drawn over the 14 km region before the window; default 200")
+    p.add_argument("--seed", type=int, default=0, help="seed of the first data set")
+    p.add_argument("--azimuth-std-mrad", type=float, default=2.0, help="sensor azimuth standard deviation, mrad")
+    p.add_argument("--range-std-m", type=float, default=12.0, help="sensor slant-range standard deviation, m")
+    p.add_argument("--workers", type=int, help="local worker processes (default: all cores; 1 runs inline)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--out", type=Path, required=True, help="output folder (results, summary.json, table1.md, PNGs)")
+    p.set_defaults(func=cmd_experiment)
+
+
 def make_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="terrain-track", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     add_run_parser(sub)
+    add_experiment_parser(sub)
     return parser
 
 

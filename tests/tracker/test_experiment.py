@@ -132,3 +132,20 @@ def test_summary_and_outputs(serial_results: pd.DataFrame, tmp_path) -> None:
     assert json.loads((tmp_path / "out" / "summary.json").read_text())["n_datasets"] == 3
     assert len(paths["figures"]) == 6
     assert "TT" in (tmp_path / "out" / "table1.md").read_text()
+
+
+def test_cli_experiment(prior_path: str, tmp_path, capsys) -> None:
+    from tracker.cli import main
+
+    out = tmp_path / "cli"
+    argv = ["experiment", "--prior", prior_path, "--datasets", "2", "--reports", "15", "--tau", "-2:2:2",
+            "--targets", "60", "--workers", "1", "--quiet", "--out", str(out)]
+    assert main(argv) == 0
+    results = pd.read_parquet(out / "results.parquet")
+    assert sorted(results["tau"].unique()) == [-2.0, 0.0, 2.0]
+    assert set(results["seed"]) == {0, 1} and len(results) == 2 * 3 * 3
+    assert "best tau" in capsys.readouterr().out
+    assert main(["experiment", "--prior", str(tmp_path / "missing.tif"), "--out", str(out)]) == 1
+    assert "missing.tif" in capsys.readouterr().err
+    assert main(["experiment", "--prior", prior_path, "--tau", "3:-3:1", "--out", str(out)]) == 1
+    assert "--tau" in capsys.readouterr().err
