@@ -102,7 +102,8 @@ class CachedIntegrator:
             from tracker.terrace import integrate as integrator
         self.prior = prior
         self.integrator = integrator
-        self.table: dict[tuple[bool, bytes], float] = {}
+        self.table: dict[bytes, float] = {}  # ∫G r, keyed by the bytes of (mean, covariance)
+        self.table2: dict[bytes, float] = {}  # ∫G r²
         self.hits = 0
         self.misses = 0
 
@@ -110,17 +111,21 @@ class CachedIntegrator:
         if prior is not self.prior:
             raise ValueError("CachedIntegrator: called with a different prior than it caches")
         means = np.asarray(means, dtype=np.float64)
+        covs = np.asarray(covs, dtype=np.float64)
         n = means.shape[0]
-        rows = np.ascontiguousarray(np.concatenate([means.reshape(n, -1), np.asarray(covs, np.float64).reshape(n, -1)], axis=1))
-        keys = [(squared, row.tobytes()) for row in rows]
-        out = np.array([self.table.get(k, np.nan) for k in keys])
-        miss = np.flatnonzero(np.isnan(out))
-        self.hits += n - miss.size
-        if miss.size:
-            self.misses += miss.size
-            out[miss] = self.integrator(prior, means[miss], np.asarray(covs)[miss], squared=squared)
-            self.table.update(zip((keys[i] for i in miss), out[miss].tolist(), strict=True))
-        return out
+        table = self.table2 if squared else self.table
+        blob = np.concatenate([means.reshape(n, -1), covs.reshape(n, -1)], axis=1).tobytes()
+        width = len(blob) // n if n else 0
+        keys = [blob[i * width:(i + 1) * width] for i in range(n)]
+        values = [table.get(k) for k in keys]
+        miss = [i for i, v in enumerate(values) if v is None]
+        self.hits += n - len(miss)
+        if miss:
+            self.misses += len(miss)
+            fresh = np.asarray(self.integrator(prior, means[miss], covs[miss], squared=squared), dtype=np.float64)
+            for i, v in zip(miss, fresh.tolist(), strict=True):
+                values[i] = table[keys[i]] = v
+        return np.array(values, dtype=np.float64)
 
 
 class _Components:
@@ -135,10 +140,11 @@ class _Components:
     def register(self, assignment: np.ndarray, means: np.ndarray, covs: np.ndarray, terrain: bool) -> np.ndarray:
         """Component indices of hypotheses 0..len(means)-1, whose reports are ``assignment == q``."""
         order = np.argsort(assignment, kind="stable")
-        bounds = np.searchsorted(assignment[order], np.arange(len(means) + 1))
+        bounds = (4 * np.searchsorted(assignment[order], np.arange(len(means) + 1))).tolist()
+        blob = order.astype(np.int32).tobytes()  # report indices grouped by hypothesis, 4 bytes each
         out = np.empty(len(means), dtype=np.intp)
         for q in range(len(means)):
-            key = (order[bounds[q]:bounds[q + 1]].astype(np.int32).tobytes(), terrain)
+            key = (blob[bounds[q]:bounds[q + 1]], terrain)
             idx = self.index.get(key)
             if idx is None:
                 idx = self.index[key] = len(self.means)
