@@ -1,13 +1,18 @@
 """Paper 2's cost model (eq. A8) for choosing the number M_D of track-file projections across a
 scan, and whether to build the search grids on tracks (one per projection, eq. 5) or on reports
-binned by time (eq. 6). Its four constants (seconds per unit of work) are measured on the
-running machine once and cached as JSON.
+binned by time (eq. 6). Its constants (seconds per unit of work) are measured on the running
+machine once, by timing gate() itself, and cached as JSON.
 
-  tracks  : C = M N_T (C_e + C_d log2 N_T) + N_R C_s log2 N_T            + C_c N_cand(M)
-  reports : C = M N_T (C_e + C_s log2(N_R/M)) + N_R C_d log2(N_R/M)      + C_c N_cand(M)
+With a grid hash the paper's log N factors (tree build and descent) become constants, and the
+terms of eq. A8 group by what is measurable:
 
-N_cand(M) = N_T N_R / V_region * <ball volume of radius R0_i + a_i |dT|>, |dT| uniform on
-[0, tau / (2M)] (eq. A4, averaged per track rather than with one R0 and one a).
+  tracks  : C = M N_T b_t + N_R r_t + C_c N_cand,tracks(M)     b_t = C_e + C_d,  r_t ~ C_s
+  reports : C = M N_T b_r + N_R r_r + C_c N_cand,reports(M)    b_r = C_e + C_s,  r_r ~ C_d
+
+(b: per track and projection; r: per report, including the per-object work common to every M).
+N_cand(M) = N_T N_R / V_region * <ball volume of radius R0 + a |dT|>, |dT| uniform on
+[0, tau / (2M)] (eq. A4), averaged over tracks each with its own R0 and a when tracks query
+(orientation "reports"), with the largest R0 and a when reports query a deflated track grid.
 """
 
 from __future__ import annotations
@@ -22,20 +27,22 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from tracker.motion import ball_volume, max_abs_dt, project
+from tracker.gating_exact import lambda_max_bound
+from tracker.motion import ReachBound, ball_volume, max_abs_dt
 
-_M_MAX = 256
-_SAMPLE = 2000
+_M_MAX = 128
+_SAMPLE = 500
 
 
 @dataclass(frozen=True)
 class CostConstants:
-    """Seconds per: projected track (c_e), point*log2(n) of grid build (c_d), query*log2(n)
-    (c_s), expected candidate pair (c_c)."""
+    """Seconds per track and projection (b_tracks, b_reports), per report (r_tracks,
+    r_reports) for grids on tracks / on reports, and per expected candidate pair (c_c)."""
 
-    c_e: float
-    c_d: float
-    c_s: float
+    b_tracks: float
+    b_reports: float
+    r_tracks: float
+    r_reports: float
     c_c: float
 
 
@@ -59,7 +66,9 @@ def cache_path() -> Path:
 
 
 def _machine_key() -> str:
-    return f"{platform.node()}|{os.cpu_count()}|{numba.config.NUMBA_NUM_THREADS}|{numba.__version__}"
+    # the model version leads the key: constants from another model are not reused
+    return (f"grid-v3|{platform.node()}|{os.cpu_count()}|{numba.config.NUMBA_NUM_THREADS}|"
+            f"{numba.__version__}")
 
 
 _constants: CostConstants | None = None
@@ -99,41 +108,48 @@ def _best_of(fn, repeats: int = 3) -> float:
     return best
 
 
-def calibrate(n: int = 40_000, seed: int = 0) -> CostConstants:
-    """Measure the constants with the real kernels on a synthetic uniform 2-D scene."""
-    from tracker.gating_grid import build_grid, query_grid
-
+def _calibration_scene(n: int, sigma: float, per_km2: float, seed: int = 0):
+    """Static-in-time CV tracks and reports uniform in a square, position sigma in metres."""
     rng = np.random.default_rng(seed)
-    side = 1000.0 * np.sqrt(n)  # one object per km^2
-    means = np.hstack([rng.uniform(0, side, (n, 2)), rng.normal(0, 100, (n, 2))])
-    covs = np.tile(np.diag([100.0, 100.0, 10.0, 10.0]), (n, 1, 1))
-    dt = rng.uniform(-5, 5, n)
-    c_e = _best_of(lambda: project(means, covs, dt, 1.0, 2)) / n
-    pos = np.ascontiguousarray(means[:, :2])
+    side = 1000.0 * np.sqrt(n / per_km2)
+    means = np.hstack([rng.uniform(0, side, (n, 2)), np.zeros((n, 2))])
+    covs = np.tile(np.diag([sigma**2, sigma**2, 1e-6, 1e-6]), (n, 1, 1))
     rpos = rng.uniform(0, side, (n, 2))
-    rcov = np.tile(np.eye(2) * 100.0, (n, 1, 1))
-    ids = np.arange(n)
-    one = np.zeros(n, np.int64)
-    lg = np.log2(n)
-    c_d = _best_of(lambda: build_grid(rpos, ids, one, 1, np.array([300.0]))) / (n * lg)
+    rcov = np.tile(np.eye(2) * sigma**2, (n, 1, 1))
+    return means, covs, rpos, rcov, rng.uniform(0.0, 10.0, n)
 
-    def run(radius: float) -> float:
-        grid = build_grid(rpos, ids, one, 1, np.array([radius]))
-        rad = np.full((n, 1), radius)
-        zeros = np.zeros(n)
-        args = (pos, ids, rad, True, grid.origin, grid.cell, grid.dims, grid.seg, grid.keys,
-                grid.members, grid.dense, grid.table_seg, grid.table, pos, np.zeros((n, 2)),
-                covs[:, :2, :2].copy(), zeros, zeros, rpos, rcov, zeros, False, 9.21, 0.0)
-        query_grid(*args)
-        return _best_of(lambda: query_grid(*args))
 
-    small, large = 50.0, 2500.0
-    t_small, t_large = run(small), run(large)
-    c_s = t_small / (n * lg)
-    rho = n / side**2
-    k_large = rho * np.pi * large**2
-    c_c = max(t_large - t_small, 1e-12) / (n * k_large)
-    return CostConstants(c_e=c_e, c_d=c_d, c_s=c_s, c_c=c_c)
+def calibrate(n: int = 20_000) -> CostConstants:
+    """Measure the constants by timing gate() on synthetic 2-D scenes: without candidates at
+    M = 1 and 8 in both orientations (slopes in M give b, intercepts r), then with about 20
+    candidates per report for C_c."""
+    from tracker import gating
+
+    gamma = 9.21
+
+    def timed(scene, m, orientation):
+        def call():
+            gating.gate(*scene[:4], threshold=gamma, report_times=scene[4], n_projections=m,
+                        orientation=orientation)
+        call()
+        return _best_of(call)
+
+    empty = _calibration_scene(n, 1e-3, 1.0)
+    t = {(m, o): timed(empty, m, o) for m in (1, 8) for o in ("tracks", "reports")}
+    b_t = max((t[8, "tracks"] - t[1, "tracks"]) / 7 / n, 1e-12)
+    b_r = max((t[8, "reports"] - t[1, "reports"]) / 7 / n, 1e-12)
+    r_t = max(t[1, "tracks"] / n - b_t, 1e-12)
+    r_r = max(t[1, "reports"] / n - b_r, 1e-12)
+    full = _calibration_scene(n, 300.0, 4.0)
+    sc = gating._validate(*full[:4], full[4], 0.0, 0.0)
+    reach = ReachBound(sc.tcov, sc.tq, 2, True)
+    lam_r = lambda_max_bound(sc.rcov)
+    n_cand = expected_candidates(sc, reach, np.zeros(n), lam_r, gamma, 10.0, np.array([1.0]),
+                                 deflate=False)[0]
+    t_full = timed(full, 1, "reports")
+    c_c = max(t_full - t[1, "reports"], 1e-12) / n_cand
+    return CostConstants(b_tracks=b_t, b_reports=b_r, r_tracks=r_t, r_reports=r_r,
+                         c_c=float(c_c))
 
 
 def expected_volume(m: np.ndarray, r0: np.ndarray, a: np.ndarray, tau: float,
@@ -147,42 +163,51 @@ def expected_volume(m: np.ndarray, r0: np.ndarray, a: np.ndarray, tau: float,
     return ball_volume(dim) * lin.mean(axis=1)
 
 
-def predict(n_t: int, n_r: int, n_cand: np.ndarray, m: np.ndarray,
-            c: CostConstants) -> tuple[np.ndarray, np.ndarray]:
+def predict(n_t: int, n_r: int, n_cand_tracks: np.ndarray, n_cand_reports: np.ndarray,
+            m: np.ndarray, c: CostConstants) -> tuple[np.ndarray, np.ndarray]:
     """Predicted seconds per M for (grids on tracks, grids on reports)."""
-    lt = np.log2(max(n_t, 2))
-    lr = np.log2(np.maximum(n_r / m, 2.0))
-    on_tracks = m * n_t * (c.c_e + c.c_d * lt) + n_r * c.c_s * lt + c.c_c * n_cand
-    on_reports = m * n_t * (c.c_e + c.c_s * lr) + n_r * c.c_d * lr + c.c_c * n_cand
+    on_tracks = m * n_t * c.b_tracks + n_r * c.r_tracks + c.c_c * n_cand_tracks
+    on_reports = m * n_t * c.b_reports + n_r * c.r_reports + c.c_c * n_cand_reports
     return on_tracks, on_reports
 
 
 def md0_closed_form(n_t: int, n_r: int, rho: float, a: float, tau: float, dim: int,
                     c: CostConstants) -> float:
-    """Paper eq. A9 (long-scan limit a tau >> R0): M_D0 = (l K2 / K1)^(1/(l+1))."""
-    k1 = n_t * (c.c_e + c.c_d * np.log2(max(n_t, 2)))
-    k2 = n_r * (c.c_s + c.c_c) * rho * ball_volume(dim) * (a * tau / 2.0) ** dim / (dim + 1)
+    """Eq. A9 for this model (long-scan limit a tau >> R0, grid on tracks):
+    C(M) ~ M K1 + K2 M^-l is least at M_D0 = (l K2 / K1)^(1/(l+1)), with K1 = N_T b_tracks
+    (= N_T (C_e + C_d)) and K2 = C_c N_R rho gamma(l) (a tau / 2)^l / (l + 1)."""
+    k1 = n_t * c.b_tracks
+    k2 = c.c_c * n_r * rho * ball_volume(dim) * (a * tau / 2.0) ** dim / (dim + 1)
     return float((dim * k2 / k1) ** (1.0 / (dim + 1)))
 
 
-def choose(sc, reach, spd: np.ndarray, lam_r: np.ndarray, gamma: float, tau: float) -> Choice:
-    """Pick M_D and the orientation minimising the predicted cost for a validated scene."""
+def expected_candidates(sc, reach, spd: np.ndarray, lam_r: np.ndarray, gamma: float,
+                        tau: float, m: np.ndarray, deflate: bool) -> np.ndarray:
+    """Expected candidate pairs for each M in ``m`` (from a sample of tracks)."""
     n_t, n_r, dim = sc.tpos.shape[0], sc.rpos.shape[0], sc.dim
-    m = np.arange(1, min(_M_MAX, n_r) + 1)
-    c = constants()
-    if tau <= 0.0:
-        return Choice(1, True, np.zeros(1), np.zeros(1))
     t_mid = float(sc.rtime.min()) + tau / 2
     pos = sc.tpos + (t_mid - sc.ttime)[:, None] * sc.tvel
     pts = np.vstack([pos, sc.rpos])
     extent = np.maximum(pts.max(axis=0) - pts.min(axis=0), 1e-9)
-    rng = np.random.default_rng(0)
-    pick = rng.choice(n_t, size=min(n_t, _SAMPLE), replace=False)
+    pick = np.random.default_rng(0).choice(n_t, size=min(n_t, _SAMPLE), replace=False)
     sig = reach.sigma(max_abs_dt(sc.ttime[pick], t_mid - tau / 2, t_mid + tau / 2), pick)
     r0 = np.sqrt(gamma * (sig**2 + float(np.mean(lam_r))))
-    vol = expected_volume(m, r0, spd[pick], tau, dim)
-    n_cand = n_t * n_r * vol / float(np.prod(extent + 2 * r0.mean()))
-    on_tracks, on_reports = predict(n_t, n_r, n_cand, m.astype(float), c)
+    a = spd[pick]
+    if deflate:
+        r0, a = np.full(1, r0.max()), np.full(1, a.max())
+    vol = expected_volume(m, r0, a, tau, dim)
+    return n_t * n_r * vol / float(np.prod(extent + 2 * r0.mean()))
+
+
+def choose(sc, reach, spd: np.ndarray, lam_r: np.ndarray, gamma: float, tau: float) -> Choice:
+    """Pick M_D and the orientation minimising the predicted cost for a validated scene."""
+    n_t, n_r = sc.tpos.shape[0], sc.rpos.shape[0]
+    if tau <= 0.0:
+        return Choice(1, True, np.zeros(1), np.zeros(1))
+    m = np.arange(1, min(_M_MAX, n_r) + 1).astype(float)
+    cand_t = expected_candidates(sc, reach, spd, lam_r, gamma, tau, m, deflate=True)
+    cand_r = expected_candidates(sc, reach, spd, lam_r, gamma, tau, m, deflate=False)
+    on_tracks, on_reports = predict(n_t, n_r, cand_t, cand_r, m, constants())
     i_t, i_r = int(np.argmin(on_tracks)), int(np.argmin(on_reports))
     if on_reports[i_r] <= on_tracks[i_t]:
         return Choice(int(m[i_r]), True, on_tracks, on_reports)

@@ -19,7 +19,13 @@ from scipy.stats import chi2
 
 from tracker import costmodel
 from tracker.gating_exact import RADIUS_SLACK, bad_covariances, lambda_max_bound, log_det
-from tracker.gating_grid import build_grid, query_grid, sort_pairs, spatial_order
+from tracker.gating_grid import (
+    build_grid,
+    counting_order,
+    query_grid,
+    sort_pairs,
+    spatial_order,
+)
 from tracker.motion import ReachBound, max_abs_dt, speed
 
 _MAX_BUCKETS = 6
@@ -59,7 +65,8 @@ def gate(track_means, track_covs, report_means, report_covs, threshold: float | 
     with d in {2, 3}. Moving: track_means (N, 2d) constant-velocity states (x, y[, z], vx, vy[, vz])
     valid at ``track_times`` (scalar or (N,), s), track_covs (N, 2d, 2d), ``report_times`` (M,)
     and white-noise-acceleration density ``process_noise`` q (scalar or (N,), m^2/s^3); each
-    pair is tested at the report's own time. Exactly one of ``threshold`` (gamma on d^2),
+    pair is tested at the report's own time (static tracks ignore ``report_times``).
+    Exactly one of ``threshold`` (gamma on d^2),
     ``prob`` (gate probability, gamma = chi2.ppf(prob, d)) or ``min_score`` (C in S_ij >= C).
 
     ``n_projections``: number M_D of track-file projections across the scan ("auto": the cost
@@ -85,8 +92,9 @@ def gate(track_means, track_covs, report_means, report_covs, threshold: float | 
     sc, t_perm, r_perm = _spatially_sorted(sc)
     plan = _plan(sc, gamma, w_logdet, n_projections, orientation)
     parts = []
+    by_bin, bin_start = counting_order(plan.bin_of_report, plan.m)
     for k in range(plan.m):
-        in_bin = np.flatnonzero(plan.bin_of_report == k)
+        in_bin = by_bin[bin_start[k]:bin_start[k + 1]]
         if in_bin.size:
             parts.append(_gate_bin(sc, plan, k, in_bin, gamma, w_logdet, buckets))
     t_idx = np.concatenate([p[0] for p in parts]) if parts else np.zeros(0, np.int64)

@@ -78,24 +78,26 @@ def test_expected_volume_long_scan_limit_and_monte_carlo():
 
 
 def test_md0_closed_form_minimises_the_long_scan_cost():
-    c = costmodel.CostConstants(c_e=1e-7, c_d=2e-8, c_s=1e-7, c_c=3e-7)
+    c = costmodel.CostConstants(b_tracks=1.2e-7, b_reports=2e-7, r_tracks=1e-7, r_reports=2e-8,
+                                c_c=3e-7)
     n_t, n_r, rho, a, tau = 50_000, 80_000, 1e-6, 250.0, 10.0
     for dim in (2, 3):
         m0 = costmodel.md0_closed_form(n_t, n_r, rho, a, tau, dim, c)
-        k1 = n_t * (c.c_e + c.c_d * np.log2(n_t))
-        k2 = n_r * (c.c_s + c.c_c) * rho * ball_volume(dim) * (a * tau / 2) ** dim / (dim + 1)
+        k1 = n_t * c.b_tracks
+        k2 = c.c_c * n_r * rho * ball_volume(dim) * (a * tau / 2) ** dim / (dim + 1)
         res = minimize_scalar(lambda m, d=dim, k1=k1, k2=k2: m * k1 + k2 * m ** (-d), bounds=(1e-3, 1e4),
                               method="bounded", options={"xatol": 1e-8})
         assert m0 == pytest.approx(res.x, rel=1e-4)
 
 
 def test_predicted_cost_trades_projections_against_candidates():
-    c = costmodel.CostConstants(c_e=1e-7, c_d=2e-8, c_s=1e-7, c_c=3e-7)
+    c = costmodel.CostConstants(b_tracks=1.2e-7, b_reports=2e-7, r_tracks=1e-7, r_reports=2e-8,
+                                c_c=3e-7)
     m = np.arange(1, 65, dtype=float)
     vol = costmodel.expected_volume(m, np.full(100, 300.0), np.full(100, 300.0), 10.0, 2)
     assert np.all(np.diff(vol) < 0)
-    dense = costmodel.predict(100_000, 100_000, 1e10 * vol / 1e9, m, c)  # 100 per km^2
-    sparse = costmodel.predict(100_000, 100_000, 1e10 * vol / 1e13, m, c)  # 1 per 100 km^2
+    dense = costmodel.predict(100_000, 100_000, 1e10 * vol / 1e9, 1e10 * vol / 1e9, m, c)
+    sparse = costmodel.predict(100_000, 100_000, 1e10 * vol / 1e13, 1e10 * vol / 1e13, m, c)
     for cost in dense:
         assert 0 < int(np.argmin(cost)) < len(m) - 1  # projections pay, up to a point
     for cost in sparse:
@@ -107,7 +109,7 @@ def test_constants_are_cached_on_disk(tmp_path, monkeypatch):
     monkeypatch.setenv("TRACKER_COST_CACHE", str(path))
     monkeypatch.setattr(costmodel, "_constants", None)
     calls = []
-    fake = costmodel.CostConstants(1e-7, 2e-8, 3e-8, 4e-7)
+    fake = costmodel.CostConstants(1e-7, 2e-8, 3e-8, 4e-8, 5e-7)
     monkeypatch.setattr(costmodel, "calibrate", lambda: calls.append(1) or fake)
     assert costmodel.constants() == fake
     stored = json.loads(path.read_text())
