@@ -28,10 +28,18 @@ def cmd_build(args: argparse.Namespace) -> None:
     model = LikelihoodModel.read_toml(args.model) if args.model else config.model
     if model is None:
         raise PriorError(f"{config.path}: no [likelihood.<feature>] tables; add them or pass --model")
-    stack = build_features(config, progress=not args.quiet)
     provenance = {"region": config.name, "config": str(config.path)}
     if args.model:
         provenance["model"] = str(Path(args.model).resolve())
+    if args.tiled or args.scheduler:
+        from pipeline.scheduler import get_client  # dask loads only for tiled builds
+        from pipeline.tiled import build_prior_tiled
+
+        with get_client(args.scheduler) as client:
+            s = build_prior_tiled(config, args.out, model, client, args.tile, provenance, progress=not args.quiet)
+        print(f"wrote {args.out} ({s['shape'][0]} x {s['shape'][1]} cells in {s['n_tiles']} tiles, {s['total_seconds']:.1f} s)")
+        return
+    stack = build_features(config, progress=not args.quiet)
     prior = build_prior(stack, model, provenance)
     prior.write(args.out)
     print(f"wrote {args.out} ({prior.grid.height} x {prior.grid.width} cells of {prior.grid.dx:g} m)")
@@ -63,6 +71,9 @@ def make_parser() -> argparse.ArgumentParser:
     p.add_argument("region", type=Path, help="region config (TOML)")
     p.add_argument("--model", type=Path, help="likelihood tables (TOML) instead of the config's [likelihood.*]")
     p.add_argument("--out", type=Path, required=True, help="prior GeoTIFF to write")
+    p.add_argument("--tiled", action="store_true", help="build tile by tile on Dask (a local in-process cluster without --scheduler)")
+    p.add_argument("--scheduler", metavar="ADDRESS", help="Dask scheduler to run a tiled build on, e.g. tcp://10.0.0.5:8786 (implies --tiled)")
+    p.add_argument("--tile", type=int, default=1024, help="tile edge in cells for tiled builds (default 1024)")
     p.set_defaults(func=cmd_build)
 
     p = sub.add_parser("show", help="draw a prior (and its features) as PNG maps")
