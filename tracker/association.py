@@ -32,12 +32,16 @@ speed). r_max carries a factor 2 of slack for the terrace rule's error. With con
 same bound is used with the normalisers at the hypotheses' last update (the predicted normaliser
 c'_q is not bounded), so there it is a strong heuristic rather than a proof.
 
-Streaming with sequential semantics, fast. Reports are processed in blocks: the block is gated
-against the hypotheses at its start (one ``gate`` call) and every gated pair is scored in one
-``integrate`` call. A numba walk then takes the reports in order; a report whose gated candidates
-were all left untouched by earlier reports of the block, and whose gate holds no hypothesis they
-created or moved, sees exactly the block-start state, so its precomputed scores are the sequential
-ones. Other reports (conflicts) are rescored from the current state before they are decided.
+Streaming with sequential semantics, fast (kernels in :mod:`tracker.walk`). Reports are taken in
+blocks: a block is gated against the hypotheses at its start (one ``gate`` call) and every gated pair
+is scored in one ``integrate`` call. A numba walk then takes the reports in order. A report none of
+whose scored candidates changed, and whose gate received no hypothesis created or moved by an earlier
+report of the block, sees exactly the block-start state, so its precomputed scores are the sequential
+ones. Otherwise its stale candidates are rescored from the current state: inside numba for UU/UT and
+for TT candidates that the bound ln G - ln c + ln r_max puts below previouslyUnseen (they need no
+integral), else by a refresh that rescores the pairs of all remaining reports against the hypotheses
+changed since the last refresh (one more ``integrate`` call). With S = e^{-nτ} the same bound skips
+the integral of every pair that cannot reach previouslyUnseen.
 """
 
 from __future__ import annotations
