@@ -58,7 +58,8 @@ def cmd_experiment(args: argparse.Namespace) -> None:
         variants=tuple(args.variants.split(",")), n_targets=args.targets, base_seed=args.seed,
         sensor=AirborneSensor(azimuth_std_rad=args.azimuth_std_mrad / 1000.0, range_std_m=args.range_std_m),
     )
-    summary, paths = run_and_write(args.prior, args.out, config, workers=args.workers, progress=not args.quiet)
+    summary, paths = run_and_write(args.prior, args.out, config, workers=args.workers, progress=not args.quiet,
+                                   title=args.title or "")
     for v, d in summary["variants"].items():
         print(f"{v}: best tau {d['best_tau']:+.2f}, mean score x10^4.5 {d['best_mean_score_x10^4.5']:.2f}, "
               f"|N_D^ - N_D| {d['mean_nd_abs_error_at_best_tau']:.2f}")
@@ -80,6 +81,7 @@ def add_experiment_parser(sub) -> None:
     p.add_argument("--range-std-m", type=float, default=12.0, help="sensor slant-range standard deviation, m")
     p.add_argument("--workers", type=int, help="local worker processes (default: all cores; 1 runs inline)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--title", help="figure title prefix (default: the prior's file name)")
     p.add_argument("--out", type=Path, required=True, help="output folder (results, summary.json, table1.md, PNGs)")
     p.set_defaults(func=cmd_experiment)
 
