@@ -142,62 +142,58 @@ def _disc_column(x):
     return 0.5 * (x * np.sqrt(max(1.0 - x * x, 0.0)) + np.arcsin(x))
 
 
+@nb.njit(cache=True, inline="always")
+def _line_roots(a, b, ta, tb):
+    """Where the line y = a + b x meets the unit circle, clamped to [ta, tb] (both ta if it misses)."""
+    qa = 1.0 + b * b
+    qb = 2.0 * a * b
+    disc = qb * qb - 4.0 * qa * (a * a - 1.0)
+    if not disc > 0.0:
+        return ta, ta
+    r = np.sqrt(disc)
+    return min(max((-qb - r) / (2.0 * qa), ta), tb), min(max((-qb + r) / (2.0 * qa), ta), tb)
+
+
+@nb.njit(cache=True, inline="always")
+def _band_piece(p, q, a_lo, a_hi, b):
+    """Area between the disc's and the lines' binding bounds over [p, q], where neither changes."""
+    if q <= p:
+        return 0.0
+    m = 0.5 * (p + q)
+    top = np.sqrt(max(1.0 - m * m, 0.0))
+    if a_hi + b * m < top:
+        upper = a_hi * (q - p) + 0.5 * b * (q * q - p * p)
+        up_m = a_hi + b * m
+    else:
+        upper = _disc_column(q) - _disc_column(p)
+        up_m = top
+    if a_lo + b * m > -top:
+        lower = a_lo * (q - p) + 0.5 * b * (q * q - p * p)
+        lo_m = a_lo + b * m
+    else:
+        lower = -(_disc_column(q) - _disc_column(p))
+        lo_m = -top
+    return upper - lower if up_m > lo_m else 0.0
+
+
 @nb.njit(cache=True)
 def disc_band_area(ta, tb, a_lo, a_hi, b):
     """Area of {ta <= x <= tb, x² + y² <= 1, a_lo + b x <= y <= a_hi + b x}: a strip of the unit
     disc between two parallel lines (a grid's two edges across the strips, mapped to the disc)."""
-    pts = np.empty(6)
-    pts[0] = ta
-    pts[1] = tb
-    n = 2
-    # Where a line meets the circle: (1 + b²) x² + 2ab x + a² - 1 = 0.
-    for a in (a_lo, a_hi):
-        qa = 1.0 + b * b
-        qb = 2.0 * a * b
-        disc = qb * qb - 4.0 * qa * (a * a - 1.0)
-        if disc > 0.0:
-            r = np.sqrt(disc)
-            for x in ((-qb - r) / (2.0 * qa), (-qb + r) / (2.0 * qa)):
-                if ta < x < tb:
-                    pts[n] = x
-                    n += 1
-    pts = np.sort(pts[:n])
-    area = 0.0
-    for k in range(n - 1):
-        p, q = pts[k], pts[k + 1]
-        if q <= p:
-            continue
-        m = 0.5 * (p + q)
-        top = np.sqrt(max(1.0 - m * m, 0.0))
-        # On each piece the binding upper and lower bounds do not change: integrate them exactly.
-        if a_hi + b * m < top:
-            upper = a_hi * (q - p) + 0.5 * b * (q * q - p * p)
-            up_m = a_hi + b * m
-        else:
-            upper = _disc_column(q) - _disc_column(p)
-            up_m = top
-        if a_lo + b * m > -top:
-            lower = a_lo * (q - p) + 0.5 * b * (q * q - p * p)
-            lo_m = a_lo + b * m
-        else:
-            lower = -(_disc_column(q) - _disc_column(p))
-            lo_m = -top
-        if up_m > lo_m:
-            area += upper - lower
-    return area
-
-
-@nb.njit(cache=True, inline="always")
-def _strip_piece(th_a, th_b):
-    """Strip of the unit disc between u = sin θ_a and u = sin θ_b: edges, area centroid, half-height."""
-    ta = np.sin(th_a)
-    tb = np.sin(th_b)
-    ca = np.cos(th_a)
-    cb = np.cos(th_b)
-    area = th_b + tb * cb - th_a - ta * ca  # twice the strip's area
-    if not (area > 0.0 and tb > ta):
-        return ta, tb, 0.0, 0.0
-    return ta, tb, -2.0 / 3.0 * (cb * cb * cb - ca * ca * ca) / area, area / (2.0 * (tb - ta))
+    r1, r2 = _line_roots(a_lo, b, ta, tb)
+    r3, r4 = _line_roots(a_hi, b, ta, tb)
+    # Merge the two sorted pairs: on each of the five pieces the binding bounds are fixed.
+    m1 = min(r1, r3)
+    m4 = max(r2, r4)
+    m2 = min(max(r1, r3), min(r2, r4))
+    m3 = max(max(r1, r3), min(r2, r4))
+    return (
+        _band_piece(ta, m1, a_lo, a_hi, b)
+        + _band_piece(m1, m2, a_lo, a_hi, b)
+        + _band_piece(m2, m3, a_lo, a_hi, b)
+        + _band_piece(m3, m4, a_lo, a_hi, b)
+        + _band_piece(m4, tb, a_lo, a_hi, b)
+    )
 
 
 @nb.njit(cache=True, inline="always")
@@ -219,15 +215,23 @@ def _ellipse_sum(sat, uc, vc, su, slope, half, extent, other, transposed, rho, n
     if t_hi <= t_lo:
         return 0.0
     clipped = t_lo > -1.0 or t_hi < 1.0
-    th_lo = np.arcsin(t_lo) if clipped else 0.0
-    th_step = (np.arcsin(t_hi) - th_lo) / ns if clipped else 0.0
+    th_b = np.arcsin(t_lo)
+    th_step = (np.arcsin(t_hi) - th_b) / ns
+    tb = t_lo
+    cb = np.sqrt(1.0 - t_lo * t_lo)
     total = 0.0
     for i in range(ns):
         if clipped:
             # Spread the strips over the part of the ellipse between the grid's u edges.
-            ta, tb, tm, e = _strip_piece(th_lo + i * th_step, th_lo + (i + 1) * th_step)
-            if not e > 0.0:
+            th_a, ta, ca = th_b, tb, cb
+            th_b = th_a + th_step
+            tb = np.sin(th_b)
+            cb = np.cos(th_b)
+            area = th_b + tb * cb - th_a - ta * ca  # twice the piece's area in the unit disc
+            if not (area > 0.0 and tb > ta):
                 continue
+            tm = -2.0 / 3.0 * (cb * cb * cb - ca * ca * ca) / area
+            e = area / (2.0 * (tb - ta))
         else:
             ta = t[off + i]
             tb = t[off + i + 1]
@@ -237,9 +241,10 @@ def _ellipse_sum(sat, uc, vc, su, slope, half, extent, other, transposed, rho, n
         vm = vc + shift * tm
         v0 = vm - hh
         v1 = vm + hh
-        # The strip lies within the centre line at its edges ± height (conservative).
-        reach_lo = vc + min(shift * ta, shift * tb) - height
-        reach_hi = vc + max(shift * ta, shift * tb) + height
+        # The strip lies within the centre line at its edges ± its widest half-chord.
+        chord = height if ta < 0.0 < tb else height * np.sqrt(max(1.0 - min(ta * ta, tb * tb), 0.0))
+        reach_lo = vc + min(shift * ta, shift * tb) - chord
+        reach_hi = vc + max(shift * ta, shift * tb) + chord
         if reach_hi <= 0.0 or reach_lo >= other:
             continue
         if reach_lo < 0.0 or reach_hi > other:
