@@ -3,6 +3,7 @@ written from paper 1's Fig. 3 (information-form Gaussian products, explicit F an
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from pathlib import Path
@@ -10,6 +11,8 @@ from pathlib import Path
 import numba
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from pipeline.grid import Grid
 from pipeline.prior import TerrainPrior
@@ -22,6 +25,7 @@ from tracker.terrace import integrate
 GOLDEN = Path(__file__).parent / "golden" / "association.json"
 
 
+@functools.cache
 def cos_prior(size_m: float = 14000.0, cell: float = 20.0) -> TerrainPrior:
     """A bumpy prior with a structural-zero lake, on a UTM grid."""
     g = Grid.from_bounds((0.0, 0.0, size_m, size_m), cell, "EPSG:32634")
@@ -138,6 +142,23 @@ def test_gated_matches_ungated_reference(prior, variant, tau, gamma):
     np.testing.assert_allclose(res.hypotheses.log_c, np.array([h[2] for h in hyp]), rtol=1e-9)
     if gamma < 10:
         assert res.stats["widened"] > 0
+
+
+@settings(max_examples=12, deadline=None)
+@given(
+    seed=st.integers(0, 10**6),
+    variant=st.sampled_from(["UU", "TT"]),
+    tau=st.floats(-3.0, 3.0),
+    gamma=st.sampled_from([2.0, 9.0, 41.4]),
+    block=st.integers(1, 40),
+    crowd=st.sampled_from([5, 40]),
+)
+def test_decisions_match_reference_property(seed, variant, tau, gamma, block, crowd):
+    prior = cos_prior()
+    reports, _ = scenario(seed, n_targets=crowd, n_reports=30, spread=(10.0, 300.0))
+    want, _ = reference(prior, reports, variant, ExpS(tau))
+    got = associate(prior, reports, variant, tau=tau, gamma=gamma, block=block)
+    np.testing.assert_array_equal(got.assignments, want)
 
 
 def test_poisson_s_matches_reference(prior):
