@@ -80,8 +80,8 @@ def default_bandwidths(stack: FeatureStack, n: int = 10) -> np.ndarray:
 
 
 def hybrid_bandwidths(kde_bandwidth: float | None) -> list[float] | None:
-    """The hybrid's candidate bandwidths: the KDE's block-CV choice and two and four times it
-    (held-out blocks see the training points only from afar, so the hybrid often wants wider)."""
+    """The hybrid's candidate bandwidths: the KDE baseline's block-CV choice and two and four times
+    it (the hybrid picks by its own held-out-fold likelihood; it often wants a wider kernel)."""
     return None if kde_bandwidth is None else [float(kde_bandwidth) * f for f in HYBRID_FACTORS]
 
 
@@ -98,9 +98,8 @@ def block_cv(
     """Spatial block CV of ``models`` (a subset of :data:`MODELS`).
 
     ``estimator`` sets the terrain model (template, penalty, zero policy); "naive" is its
-    ``method="naive"`` twin and "hybrid" adds the spatial term (γ fitted on leave-block-out KDE
-    values), its bandwidth chosen among :func:`hybrid_bandwidths` of the KDE's bandwidth, itself
-    chosen by block CV inside the training folds. Points off the grid, and (with ``on_zero="drop"``) on
+    ``method="naive"`` twin and "hybrid" adds the spatial term (γ fitted on KDE values from other
+    block folds of the training points), its bandwidth among :func:`hybrid_bandwidths`. Points off the grid, and (with ``on_zero="drop"``) on
     structural zeros, are excluded from every model's test set alike and counted.
     """
     unknown = set(models) - set(MODELS)
@@ -132,7 +131,8 @@ def block_cv(
             elif m == "kde":
                 scores[f, j] = float(kde.score_samples(test).mean())
             else:
-                params = {"naive": {"method": "naive"}, "terrain": {}, "hybrid": {"spatial_bandwidth": hybrid_bandwidths(kde.bandwidth if kde else None), "spatial_block": block_size}}[m]
+                params = {"naive": {"method": "naive"}, "terrain": {}, "hybrid": {"spatial_bandwidth": hybrid_bandwidths(kde.bandwidth if kde else None),
+                                      "spatial_block": block_size, "spatial_folds": n_folds}}[m]
                 est = clone(base).set_params(**params).fit(stack, train)
                 ld = est.log_density(test)
                 if not np.all(np.isfinite(ld)):

@@ -10,8 +10,8 @@ from sklearn.neighbors import KernelDensity
 
 from pipeline.grid import Grid
 
-FLOOR_SHARE = 0.01
-"""The grid KDE is mixed with this share of the uniform density so its log is finite everywhere."""
+KDE_EPS = 1e-6
+"""Added to the KDE ratio k before its log, so the feature is finite where the kernel is truncated."""
 TRUNCATE = 4.0
 """Gaussian kernel truncated at this many bandwidths."""
 
@@ -53,36 +53,39 @@ def _own_group_mass(grid: Grid, points: np.ndarray, groups: np.ndarray, bandwidt
     order = np.argsort(groups, kind="stable")
     bounds = np.flatnonzero(np.diff(groups[order])) + 1
     for members in np.split(order, bounds):
-        dc = np.abs(col[members][:, None] - col[members][None, :])
-        dr = np.abs(row[members][:, None] - row[members][None, :])
-        near = (dc <= radius) & (dr <= radius)
-        wts = np.where(near, w1[np.minimum(dc, radius) + radius] * w1[np.minimum(dr, radius) + radius], 0.0)
-        out[members] = wts.sum(axis=1)
+        for start in range(0, len(members), 1024):  # bounded memory for large groups
+            rows_ = members[start : start + 1024]
+            dc = np.abs(col[rows_][:, None] - col[members][None, :])
+            dr = np.abs(row[rows_][:, None] - row[members][None, :])
+            near = (dc <= radius) & (dr <= radius)
+            wts = np.where(near, w1[np.minimum(dc, radius) + radius] * w1[np.minimum(dr, radius) + radius], 0.0)
+            out[rows_] = wts.sum(axis=1)
     return out
 
 
 def log_kde_feature(
     grid: Grid, points: np.ndarray, bandwidth: float, groups: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """log of the floored grid KDE on the grid (log per m²) and, at each point, the same from the
-    points *outside its group* (each point its own group when ``groups`` is None: leave-one-out).
+    """log(k + KDE_EPS) on the grid, k = grid KDE × grid area (the KDE over the uniform density),
+    and the same at each point from the points *outside its group* (each point its own group when
+    ``groups`` is None: leave-one-out).
 
-    The hybrid's exponent is fitted on those held-out values: how well other points (other blocks,
-    under spatial block CV) predict each one; the full KDE at a point's own cell would reward γ for
-    the point's own kernel.
+    The hybrid's parameters are fitted on those held-out values: how well other points (other
+    blocks, under spatial block CV) predict each one; the full KDE at a point's own cell would
+    reward the spatial term for the point's own kernel.
     """
     if groups is None:
         groups = np.arange(len(points))
     dens = grid_kde(grid, points, bandwidth)
     n = len(points)
-    floor = FLOOR_SHARE / (grid.width * grid.height * grid.cell_area)
+    area = grid.width * grid.height * grid.cell_area
     u, v = grid.to_pixel(points[:, 0], points[:, 1])
     at = dens[v.astype(np.intp), u.astype(np.intp)]
     _, inv, size = np.unique(groups, return_inverse=True, return_counts=True)
     others = n - size[inv]
     own = _own_group_mass(grid, points, groups, bandwidth) / grid.cell_area
     held = np.where(others > 0, np.clip(n * at - own, 0.0, None) / np.maximum(others, 1), 0.0)
-    return np.log((1 - FLOOR_SHARE) * dens + floor), np.log((1 - FLOOR_SHARE) * held + floor)
+    return np.log(dens * area + KDE_EPS), np.log(held * area + KDE_EPS)
 
 
 def block_ids(points: np.ndarray, origin: tuple[float, float], block_size: float) -> np.ndarray:
@@ -90,6 +93,19 @@ def block_ids(points: np.ndarray, origin: tuple[float, float], block_size: float
     bx = np.floor((points[:, 0] - origin[0]) / block_size).astype(np.int64)
     by = np.floor((points[:, 1] - origin[1]) / block_size).astype(np.int64)
     return bx * 1_000_003 + by
+
+
+def block_folds(points: np.ndarray, origin: tuple[float, float], block_size: float, n_folds: int) -> np.ndarray:
+    """Fold id (0..n_folds-1) of each point: whole blocks per fold, as scikit-learn's GroupKFold
+    deals them (fewer folds when fewer blocks hold points)."""
+    groups = block_ids(points, origin, block_size)
+    k = min(n_folds, len(np.unique(groups)))
+    fold = np.zeros(len(points), dtype=np.int64)
+    if k < 2:
+        return fold
+    for f, (_, test) in enumerate(GroupKFold(n_splits=k).split(points, groups=groups)):
+        fold[test] = f
+    return fold
 
 
 def fit_kde_cv(

@@ -25,14 +25,14 @@ import numpy as np
 from sklearn.base import BaseEstimator, clone
 
 from pipeline.features import Feature, FeatureStack
-from pipeline.kde import block_ids, log_kde_feature
+from pipeline.kde import block_folds, log_kde_feature
 from pipeline.likelihood import (
     BinnedLikelihood,
     CategoricalLikelihood,
     LikelihoodModel,
     RoadDistanceLikelihood,
 )
-from pipeline.poisson import Objective, fit, term_params
+from pipeline.poisson import Objective, fit, kde_logr, term_params
 from pipeline.prior import TerrainPrior
 from pipeline.sufficient import (
     CONTINUOUS_FORMS,
@@ -46,9 +46,9 @@ from pipeline.sufficient import (
 )
 
 SPATIAL = "spatial_kde"
-"""Name of the hybrid's learned spatial feature (log of a KDE of the training points, log per m²)."""
+"""Name of the hybrid's learned spatial feature: log(KDE of the training points / uniform density + KDE_EPS)."""
 SPATIAL_BIN = 0.05
-"""Fine-bin width of the log-KDE feature (nats); r varies by a factor exp(γ·0.05) across a bin."""
+"""Fine-bin width of the log-KDE feature; r varies at most by a factor exp(γ·0.05) across a bin."""
 Z95 = 1.959963984540054
 
 
@@ -119,19 +119,22 @@ class PriorEstimator(BaseEstimator):
         binned edges), structural zeros (values 0, fixed, not fitted) and start values.
     features : feature names to use (default: the template's, else all).
     method : ``"ml"`` (joint Poisson-process maximum likelihood) or ``"naive"`` (each term on its marginal).
-    penalty_sd : σ of the Gaussian prior on each log-likelihood (and on the hybrid exponent), nats.
+    penalty_sd : σ of the Gaussian prior on each categorical / binned log-likelihood, nats.
         Default 3: a factor e³ ≈ 20 is one σ, so the penalty only bites for levels with few points.
     smooth_sd : τ of the Gaussian prior on differences of log r between adjacent bins of a binned term.
     on_zero : points on a structural zero: ``"drop"`` them (counted) or ``"soften"`` every zero to ``soften``.
     soften : likelihood (relative to the reference level) given to structural zeros when softened.
     flexible : feature -> left bin edges: fit that feature as bins instead of the road form.
     spatial_bandwidth : metres, or a list of candidates; when set, the hybrid: one more term
-        exp(γ·log KDE of the training
-        points) with γ fitted on each training point's KDE value from the points outside its
-        ``spatial_block`` (square blocks of that many metres; leave-one-out when None). With several
+        (α + (1−α)·k)^γ, k the KDE of the training points over the uniform density, α =
+        ``spatial_floor``, γ >= 0 fitted on each training point's KDE value from the points outside its
+        group: squares of ``spatial_block`` metres dealt into ``spatial_folds`` folds, the geometry
+        of spatial block CV (leave-one-out when ``spatial_block`` is None). With several
         candidates, the one whose fit has the highest log-likelihood on those held-out values wins
         (``spatial_bandwidth_``, ``bandwidth_loglik_``).
-    spatial_block : metres; see ``spatial_bandwidth``.
+    spatial_block, spatial_folds : metres and a count; see ``spatial_bandwidth``.
+    spatial_floor : α, the fixed share of the uniform density in the KDE term. Default 0.01: a
+        target far from every past one costs at most γ·log(1/0.01) ≈ 4.6·γ nats over the terrain fit.
     bin_width : fine-bin width of continuous terms in feature units (default: a quarter cell).
     n_bins : quantile bins of continuous non-distance features without a template.
     """
@@ -148,6 +151,8 @@ class PriorEstimator(BaseEstimator):
         flexible: dict[str, list[float]] | None = None,
         spatial_bandwidth: float | list[float] | None = None,
         spatial_block: float | None = None,
+        spatial_folds: int = 5,
+        spatial_floor: float = 0.01,
         bin_width: float | None = None,
         n_bins: int = 8,
     ) -> None:
@@ -161,6 +166,8 @@ class PriorEstimator(BaseEstimator):
         self.flexible = flexible
         self.spatial_bandwidth = spatial_bandwidth
         self.spatial_block = spatial_block
+        self.spatial_folds = spatial_folds
+        self.spatial_floor = spatial_floor
         self.bin_width = bin_width
         self.n_bins = n_bins
 
@@ -191,14 +198,14 @@ class PriorEstimator(BaseEstimator):
             inside = _inside(features, pts)
             groups = None
             if self.spatial_block:
-                groups = block_ids(pts[inside], features.grid.bounds[:2], self.spatial_block)
+                groups = block_folds(pts[inside], features.grid.bounds[:2], self.spatial_block, self.spatial_folds)
             logk, loo_in = log_kde_feature(features.grid, pts[inside], self.spatial_bandwidth_, groups)
             loo = np.full(len(pts), np.nan)
             loo[inside] = loo_in
             stack = FeatureStack(features.grid, dict(features.features))
-            stack.add(Feature(SPATIAL, logk, "continuous", "log(1/m2)"))
-            terms.append(with_range(Term(SPATIAL, "loglinear", bin_width=SPATIAL_BIN), logk))
-            starts.append({"gamma": 0.5})
+            stack.add(Feature(SPATIAL, logk, "continuous", "log(KDE over uniform)"))
+            terms.append(with_range(Term(SPATIAL, "kde", bin_width=SPATIAL_BIN), logk))
+            starts.append({"alpha": self.spatial_floor})
         cells = cell_stats(stack, tuple(terms))
         t_pass, c_pass = time.perf_counter() - t0, time.process_time() - c0
         terms = [_with_reference(t, cells.level_area(k)) for k, t in enumerate(terms)]
@@ -294,9 +301,10 @@ class PriorEstimator(BaseEstimator):
                 }
                 table_terms[t.feature] = RoadDistanceLikelihood(rmd, mv, t.nodata)
             else:
-                self.likelihoods_[t.feature] = {"gamma": float(th[0])}
-                self.stderr_[t.feature] = {"gamma": float(se[0])}
-                self.ci_[t.feature] = {"gamma": (float(th[0] - Z95 * se[0]), float(th[0] + Z95 * se[0]))}
+                self.likelihoods_[t.feature] = {"gamma": float(th[0]), "alpha": p.alpha}
+                self.stderr_[t.feature] = {"gamma": float(se[0]), "alpha": 0.0}
+                self.ci_[t.feature] = {"gamma": (float(max(th[0] - Z95 * se[0], 0.0)), float(th[0] + Z95 * se[0])),
+                                       "alpha": (p.alpha, p.alpha)}
         meta = {
             "learned": {
                 "method": self.method,
@@ -312,8 +320,9 @@ class PriorEstimator(BaseEstimator):
         }
         if self.spatial_bandwidth_:
             meta["learned"]["spatial_term"] = (
-                f"hybrid: also exp(gamma * log KDE(bandwidth {self.spatial_bandwidth_:g} m)), "
-                f"gamma = {self.likelihoods_[SPATIAL]['gamma']:.4g}; not representable in this table"
+                f"hybrid: also (alpha + (1 - alpha) * KDE / uniform)^gamma, KDE bandwidth {self.spatial_bandwidth_:g} m, "
+                f"gamma = {self.likelihoods_[SPATIAL]['gamma']:.4g}, alpha = {self.likelihoods_[SPATIAL]['alpha']:.4g}; "
+                "not representable in this table"
             )
         self.model_ = LikelihoodModel(table_terms, meta)
 
@@ -323,7 +332,9 @@ class PriorEstimator(BaseEstimator):
         """The fitted prior (density per m²) on the training grid, built on first use."""
         r = self.model_.evaluate(self.stack_)
         if self.spatial_bandwidth_:
-            r *= np.exp(self.likelihoods_[SPATIAL]["gamma"] * (self.stack_[SPATIAL].values - self.stack_[SPATIAL].values.max()))
+            p = self.likelihoods_[SPATIAL]
+            logr = kde_logr(self.stack_[SPATIAL].values, p["gamma"], p["alpha"])
+            r *= np.exp(logr - logr.max())
         return TerrainPrior.from_array(r, self.stack_.grid, self.model_.to_dict())
 
     def log_density(self, points: np.ndarray) -> np.ndarray:

@@ -13,7 +13,7 @@
     folds = 5                   # spatial block cross-validation
     block_size_m = 2000.0
     bandwidths_m = [40, 80, 160, 320, 640]   # KDE candidates (default: 2 cells .. 1/5 of the grid)
-    hybrid = true               # also fit and evaluate terrain + exp(γ·log KDE)
+    hybrid = true               # also fit and evaluate terrain × (α + (1-α)·KDE/uniform)^γ
 
 The region's ``[likelihood.*]`` tables are the template: forms, bin edges, structural zeros (0),
 start values. The table is read here and removed before the region config is validated.

@@ -64,8 +64,9 @@ class LearnReport:
             f"{est.n_on_zero_} on structural zeros {est.on_zero_detail_ or ''} ({est.on_zero})"
         )
         if self.hybrid is not None:
-            g = self.hybrid.likelihoods_[SPATIAL]["gamma"]
-            lines.append(f"hybrid: gamma = {g:.3f} on log KDE (bandwidth {self.hybrid.spatial_bandwidth_:.0f} m)")
+            p = self.hybrid.likelihoods_[SPATIAL]
+            lines.append(f"hybrid: terrain x (alpha + (1 - alpha) KDE/uniform)^gamma, gamma = {p['gamma']:.3f} "
+                         f"(alpha = {p['alpha']:g}), KDE bandwidth {self.hybrid.spatial_bandwidth_:.0f} m")
         if self.cv is not None:
             s = self.cv.summary()
             lines.append(
@@ -123,7 +124,8 @@ def diagnostics(report: LearnReport) -> dict:
     if report.hybrid is not None:
         out["hybrid"] = fit_info(report.hybrid) | {"bandwidth_m": report.hybrid.spatial_bandwidth_,
                                                    "bandwidth_loglik": report.hybrid.bandwidth_loglik_,
-                                                   "block_m": report.hybrid.spatial_block}
+                                                   "block_m": report.hybrid.spatial_block,
+                                                   "folds": report.hybrid.spatial_folds}
     if report.cv is not None:
         out["cv"] = report.cv.summary()
     return _jsonable(out)
@@ -158,7 +160,8 @@ def learn_region(
         used = pts[est.used_mask_]
         bws = np.asarray(lc.bandwidths_m) if lc.bandwidths_m else default_bandwidths(stack)
         bw = fit_kde_cv(used, block_ids(used, config.grid.bounds[:2], lc.block_size_m), bws).bandwidth
-        hyb = clone(est).set_params(spatial_bandwidth=hybrid_bandwidths(bw), spatial_block=lc.block_size_m).fit(stack, pts)
+        hyb = clone(est).set_params(spatial_bandwidth=hybrid_bandwidths(bw), spatial_block=lc.block_size_m,
+                                    spatial_folds=lc.folds).fit(stack, pts)
     result = None
     if cv:
         models = ("uniform", "naive", "terrain", "kde", "hybrid") if lc.hybrid else ("uniform", "naive", "terrain", "kde")

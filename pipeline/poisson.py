@@ -4,9 +4,10 @@ For points x_1..x_n and r(x) = Π_t r_t(x), the normalised-density log-likelihoo
 ℓ(θ) = Σ_i log r(x_i) − n log Σ_c A_c r(c), the Poisson process likelihood with the intercept
 profiled out. Parameters per term (:class:`TermParams`): log r of each free level of a discrete
 term (reference level fixed at 0, structural zeros fixed), (log rmd, mv) for the road form, γ for
-a log-linear term. The penalty is a Gaussian prior: ½ Σ θ²/σ² on log-likelihoods and exponents
-(σ = ``penalty_sd``) plus ½ Σ (Δ log r)²/τ² between adjacent bins of a binned term (τ = ``smooth_sd``).
-The fit minimises −(ℓ − penalty) with scipy's L-BFGS-B (bounds: rmd > 0, mv in (0, 1]);
+the hybrid's KDE term. The penalty is a Gaussian prior: ½ Σ θ²/σ² on the discrete terms'
+log-likelihoods (σ = ``penalty_sd``) plus ½ Σ (Δ log r)²/τ² between adjacent bins of a binned term
+(τ = ``smooth_sd``). The fit minimises −(ℓ − penalty) with scipy's L-BFGS-B (bounds: rmd > 0,
+mv in (0, 1], γ >= 0);
 standard errors come from the inverse of the observed information, the Hessian of −(ℓ − penalty),
 by central differences of the analytic gradient.
 """
@@ -19,6 +20,7 @@ import numba as nb
 import numpy as np
 from scipy import optimize
 
+from pipeline.kde import KDE_EPS
 from pipeline.likelihood import road_likelihood
 from pipeline.sufficient import DISCRETE_FORMS, CellStats, PointStats, Term
 
@@ -38,6 +40,7 @@ class TermParams:
     x0: np.ndarray
     bounds: list[tuple[float | None, float | None]]
     bin_value: np.ndarray | None = None  # continuous: area-weighted mean value per fine bin (cells)
+    alpha: float = 0.01  # KDE term: fixed share of the uniform density mixed into the KDE
 
     @property
     def size(self) -> int:
@@ -59,7 +62,7 @@ class TermParams:
             r = road_likelihood(value, np.exp(theta[0]), theta[1])
             with np.errstate(divide="ignore"):
                 return np.where(index >= 0, np.log(r), lognd)
-        return np.where(index >= 0, theta[0] * np.nan_to_num(value), lognd)
+        return np.where(index >= 0, kde_logr(np.nan_to_num(value), theta[0], self.alpha), lognd)
 
     def cell_lut(self, theta: np.ndarray) -> np.ndarray:
         """log r per level (fine bin for continuous terms) with log(nodata) last."""
@@ -95,7 +98,7 @@ class TermParams:
             d_logrmd = (1.0 - mv) * g * z * d / rmd / r
             d_mv = (1.0 - g) / r
             return np.array([np.dot(w, d_logrmd), np.dot(w, d_mv)])
-        return np.array([np.dot(w, d)])
+        return np.array([np.dot(w, kde_logr(d, 1.0, self.alpha))])
 
 
 def term_params(
@@ -104,7 +107,7 @@ def term_params(
     """Parameters of one term. Discrete levels with no area are fixed at log r = 0 (unidentified).
 
     ``soften``: structural zeros get this fixed likelihood instead of 0. ``start``: initial values
-    (``{"logr": array per level}`` or ``{"rmd":, "mv":}`` or ``{"gamma":}``).
+    (``{"logr": array per level}`` or ``{"rmd":, "mv":}`` or ``{"gamma":, "alpha":}``, α fixed).
     """
     start = start or {}
     if term.form in DISCRETE_FORMS:
@@ -126,8 +129,19 @@ def term_params(
         return TermParams(term, np.zeros(0, np.int64), np.zeros(0), np.array([np.log(rmd), mv]), b, bin_value)
     # γ >= 0: more past points nearby never makes a place less likely. Without the bound, a fit on
     # held-out-block values learns "targets are where the other blocks' points are not" (γ < 0).
-    gamma = np.array([max(float(start.get("gamma", 0.0)), 0.0)])
-    return TermParams(term, np.zeros(0, np.int64), np.zeros(0), gamma, [(0.0, None)], bin_value)
+    alpha = float(start.get("alpha", 0.01))
+    if not 0 < alpha <= 1:
+        raise ValueError(f"the KDE term's uniform share must be in (0, 1], got {alpha}")
+    x0 = np.array([max(float(start.get("gamma", 0.5)), 0.0)])
+    return TermParams(term, np.zeros(0, np.int64), np.zeros(0), x0, [(0.0, None)], bin_value, alpha)
+
+
+def kde_logr(value: np.ndarray, gamma: float, alpha: float) -> np.ndarray:
+    """The hybrid's spatial term: log r = γ·log(α + (1−α)·k), k = exp(value) − KDE_EPS the KDE of
+    past points over the uniform density. α, the share of the uniform density mixed in, bounds
+    what a target far from every past one costs; γ >= 0 says how sharply targets follow past ones."""
+    k = np.exp(value) - KDE_EPS
+    return gamma * np.log(alpha + (1.0 - alpha) * k)
 
 
 @dataclass
@@ -188,7 +202,7 @@ class Objective:
         for j, (th, k) in enumerate(zip(self.split(x), self.active, strict=True)):
             p = self.params[k]
             sl = slice(self.offsets[j], self.offsets[j + 1])
-            if p.term.form == "road":
+            if p.term.form not in DISCRETE_FORMS:  # road and KDE parameters are bounded, not penalised
                 continue
             val += 0.5 * float(th @ th) / self.penalty_sd**2
             grad[sl] += th / self.penalty_sd**2
@@ -284,20 +298,25 @@ class FitResult:
     at_bound: np.ndarray
 
 
-def _start_road(obj: Objective, x0: np.ndarray) -> np.ndarray:
-    """Pick the road terms' start among a few rmd and mv values (the form is not concave in rmd)."""
+def _start_nonlinear(obj: Objective, x0: np.ndarray) -> np.ndarray:
+    """Pick the road and KDE terms' starts among a few values (neither form is concave)."""
     x = x0.copy()
     for j, k in enumerate(obj.active):
-        if obj.params[k].term.form != "road":
+        form = obj.params[k].term.form
+        if form not in ("road", "kde"):
             continue
         o = obj.offsets[j]
-        d = obj.points.value[:, k]
-        d = d[np.isfinite(d) & (d > 0)]
-        scale = float(np.median(d)) if d.size else float(np.exp(x[o]))
-        grid = [(np.log(rmd), mv) for rmd in scale * np.geomspace(0.125, 4.0, 11) for mv in (0.05, 0.3, 0.8)]
-        grid.append((x[o], x[o + 1]))
-        best = min(grid, key=lambda c: obj(np.concatenate([x[:o], c, x[o + 2 :]]))[0])
-        x[o : o + 2] = best
+        if form == "road":
+            d = obj.points.value[:, k]
+            d = d[np.isfinite(d) & (d > 0)]
+            scale = float(np.median(d)) if d.size else float(np.exp(x[o]))
+            grid = [(np.log(rmd), mv) for rmd in scale * np.geomspace(0.125, 4.0, 11) for mv in (0.05, 0.3, 0.8)]
+        else:
+            grid = [(g,) for g in (0.0, 0.25, 0.5, 1.0, 2.0)]
+        grid.append(tuple(x[o : o + obj.params[k].size]))
+        size = obj.params[k].size
+        best = min(grid, key=lambda c: obj(np.concatenate([x[:o], c, x[o + size :]]))[0])
+        x[o : o + size] = best
     return x
 
 
@@ -305,7 +324,7 @@ def fit(obj: Objective) -> FitResult:
     """Minimise −(ℓ − penalty) with L-BFGS-B; covariance = inverse observed information."""
     if obj.n == 0:
         raise ValueError("no points left to fit (all off the grid or on structural zeros?)")
-    x0 = _start_road(obj, obj.x0)
+    x0 = _start_nonlinear(obj, obj.x0)
     if x0.size == 0:
         return FitResult(x0, np.zeros((0, 0)), obj.loglik(x0), 0.0, True, "no free parameters", 0, np.zeros(0, bool))
     res = optimize.minimize(

@@ -18,9 +18,9 @@ import numpy as np
 
 from pipeline.features import NODATA_CODE, FeatureStack
 
-TermForm = Literal["categorical", "binned", "road", "loglinear"]
+TermForm = Literal["categorical", "binned", "road", "kde"]
 DISCRETE_FORMS = ("categorical", "binned")
-CONTINUOUS_FORMS = ("road", "loglinear")
+CONTINUOUS_FORMS = ("road", "kde")
 NODATA_INDEX = -1
 """Level index of a no-data cell or point (its likelihood is the fixed ``Term.nodata``)."""
 
@@ -34,7 +34,8 @@ class Term:
 
     ``categorical``: one level per code in ``codes`` (names in ``levels``). ``binned``: one level per
     left edge in ``edges`` (feature units, last bin open, values below the first edge in bin 0).
-    ``road``: paper 1's form in (rmd, mv). ``loglinear``: r = exp(γ·value). ``zeros`` are level
+    ``road``: paper 1's form in (rmd, mv). ``kde``: the hybrid's spatial term (see
+    :func:`pipeline.poisson.kde_logr`) of value log(k + KDE_EPS), k a KDE over the uniform density. ``zeros`` are level
     indices fixed at r = 0 (structural zeros); ``reference`` is the level fixed at r = 1.
     ``bin_width`` (feature units) is the fine bin of continuous forms; ``lo`` their lowest value.
     """

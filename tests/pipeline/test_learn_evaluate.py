@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from pipeline.evaluate import block_cv
-from pipeline.kde import FLOOR_SHARE, block_ids, fit_kde_cv, grid_kde, log_kde_feature
+from pipeline.kde import KDE_EPS, block_ids, fit_kde_cv, grid_kde, log_kde_feature
 from pipeline.learn import PriorEstimator
 from tests.pipeline.learn_synth import TRUE_MODEL, sample_points, small_stack
 
@@ -35,12 +35,12 @@ def test_held_out_kde_values_equal_a_kde_of_the_other_points(block) -> None:
     h = 70.0
     _, held = log_kde_feature(stack.grid, pts, h, groups)
     g = np.arange(len(pts)) if groups is None else groups
-    floor = FLOOR_SHARE / (stack.grid.width * stack.grid.height * stack.grid.cell_area)
+    area = stack.grid.width * stack.grid.height * stack.grid.cell_area
     u, v = stack.grid.to_pixel(pts[:, 0], pts[:, 1])
     for i in range(0, len(pts), 7):
         others = pts[g != g[i]]
         oracle = grid_kde(stack.grid, others, h)[int(v[i]), int(u[i])]
-        assert held[i] == pytest.approx(np.log((1 - FLOOR_SHARE) * oracle + floor), rel=1e-9)
+        assert held[i] == pytest.approx(np.log(oracle * area + KDE_EPS), rel=1e-9)
 
 
 def test_kde_baseline_picks_a_candidate_and_scores_as_a_gaussian_mixture() -> None:
@@ -60,14 +60,15 @@ def test_kde_baseline_picks_a_candidate_and_scores_as_a_gaussian_mixture() -> No
 def test_block_cv_scores_models_on_the_same_held_out_blocks() -> None:
     stack = small_stack(60, 80)
     xs, ys = stack.grid.cell_centres()
-    bump = np.exp(-((xs - xs.mean()) ** 2 + (ys - ys.mean() - 200) ** 2) / (2 * 200.0**2))
+    # a broad spatial effect (sd 400 m, blocks of 300 m): what a KDE of other blocks can predict
+    bump = np.exp(-((xs - xs.mean() + 300) ** 2 + (ys - ys.mean() - 200) ** 2) / (2 * 400.0**2))
     rng = np.random.default_rng(3)
-    pts = sample_points(TRUE_MODEL.evaluate(stack) * (0.3 + 4 * bump), stack.grid, 1500, rng)
+    pts = sample_points(TRUE_MODEL.evaluate(stack) * (0.1 + 4 * bump), stack.grid, 1500, rng)
     rows, cols = np.nonzero(stack["water"].values == 1)
     wet = np.column_stack(stack.grid.transform @ (cols[:3] + 0.5, rows[:3] + 0.5))
     with pytest.warns(UserWarning, match="3 on structural zeros"):
         res = block_cv(stack, np.vstack([pts, wet]), PriorEstimator(template=TRUE_MODEL), n_folds=4,
-                       block_size=400.0, bandwidths=np.array([60.0, 150.0, 400.0]), progress=False)
+                       block_size=300.0, bandwidths=np.array([60.0, 150.0, 400.0]), progress=False)
     s = res.summary()
     assert res.n_excluded == 3 and res.n_test.sum() == 1500 and s["folds"] == 4
     gain = {m: v["pooled"] for m, v in s["gain_nats"].items()}
