@@ -19,14 +19,16 @@ Gate and its proof. Only hypotheses with Mahalanobis d² = (z-a_q)ᵀ(A_q+V)⁻�
 A hypothesis outside the gate has
 
     G(z; a_q, A_q+V) < e^{-γ/2} / (2π √det(A_q+V)) <= e^{-γ/2} / (2π √det V)      (A_q+V ⪰ V)
-    ∫G(b_q,B_q) r / c_q <= r_max / c_min                (∫G r <= max r; c_min the least c over q)
+    ∫G(b_q,B_q) r / c_q <= r_max / c_q                  (∫G r <= max r)
 
 (UU/UT: the ratio is exactly 1). So whenever
 
-    -γ/2 - ln(2π √det V) + ln(r_max / c_min) <= max(best gated score, previouslyUnseen score)
+    -γ/2 - ln(2π √det V) + ln(r_max / c_floor) <= max(best gated score, previouslyUnseen score)
 
-no hypothesis outside the gate can be chosen nor beat previouslyUnseen: the gated decision equals
-the ungated one. This is checked for every report; when it fails, that report is re-gated by brute
+with c_floor a lower bound on c_q over all but the LOW_C hypotheses of least c, and the same bound
+with each of those LOW_C's own c_q and exact d² holds too, no hypothesis outside the gate can be
+chosen nor beat previouslyUnseen: the gated decision equals the ungated one. (One bad normaliser
+would otherwise loosen the bound for every report.) This is checked for every report; when it fails, that report is re-gated by brute
 force with the γ that makes the inequality hold, so decisions never depend on γ (γ only trades
 speed). r_max carries a factor 2 of slack for the terrace rule's error. With constant velocity the
 same bound is used with the normalisers at the hypotheses' last update (the predicted normaliser
@@ -75,6 +77,8 @@ GATE_PROB = 1.0 - 1e-9
 DEFAULT_GAMMA = -2.0 * math.log(1.0 - GATE_PROB)
 BLOCK = 2048
 """Reports per block: larger blocks amortise gating, smaller ones conflict less."""
+LOW_C = 256
+"""Hypotheses of least normaliser that the gate bound checks one by one (the rest share a floor)."""
 _RMAX_SLACK = math.log(2.0)
 _LOG_2PI = math.log(2.0 * math.pi)
 
@@ -236,7 +240,6 @@ class Tracker:
         self.hypotheses_ = Hypotheses(self.motion.state_dim)
         self.n_reports_ = 0
         self._last_time = -np.inf
-        self._min_log_c = np.inf
         self.stats_ = {"blocks": 0, "pairs": 0, "conflicts": 0, "widened": 0, "skipped": 0}
 
     @property
@@ -368,14 +371,13 @@ class Tracker:
         pool = _PairPool(m, H.state_dim, max(2 * p_h.size, 64))
         H.reserve(m)
         dirty = np.zeros(H.capacity, dtype=np.bool_)
-        hyp = (H._means, H._covs, H._log_c, H._counts, H._times, dirty, np.zeros(m, dtype=np.int64))
+        low, is_low, floor = self._low_c(m)
+        hyp = (H._means, H._covs, H._log_c, H._counts, H._times, dirty, np.zeros(m, dtype=np.int64), low, is_low)
         assign = np.full(m, -1, dtype=np.int64)
         blk = (z, V, t, log_unseen, 0.5 * np.linalg.slogdet(V)[1], np.zeros(m, dtype=np.bool_), assign,
                *build_report_grid(z, V, self.gamma), np.zeros(m, dtype=np.int64))
-        if H.n:
-            self._min_log_c = float(H.log_c.min())
-        istate = np.array([H.n, 0, self.n_reports_, 0], dtype=np.int64)
-        fstate = np.array([self._min_log_c, 0.0])
+        istate = np.array([H.n, 0, self.n_reports_, 0, min(H.n, LOW_C)], dtype=np.int64)
+        fstate = np.array([floor, 0.0])
         cfg = self._cfg()
         pool.add(p_rep, p_h, self._score(p_rep, p_h, blk, hyp, cfg), hyp, istate, blk, 0)
         self.stats_["blocks"] += 1
@@ -398,8 +400,22 @@ class Tracker:
                 j += 1
         self.stats_["pairs"] += int(istate[3])
         self.n_reports_ = int(istate[2])
-        self._min_log_c = float(fstate[0])
         return assign
+
+    def _low_c(self, m: int) -> tuple[np.ndarray, np.ndarray, float]:
+        """The LOW_C hypotheses of least ln c (checked one by one by the gate bound), a flag per
+        hypothesis, and the floor of ln c over the others."""
+        H = self.hypotheses_
+        low = np.zeros(LOW_C + m, dtype=np.int64)
+        is_low = np.zeros(H.capacity, dtype=np.bool_)
+        if H.n <= LOW_C:
+            low[: H.n] = np.arange(H.n)
+            is_low[: H.n] = True
+            return low, is_low, np.inf
+        part = np.argpartition(H.log_c, LOW_C)
+        low[:LOW_C] = part[:LOW_C]
+        is_low[part[:LOW_C]] = True
+        return low, is_low, float(H.log_c[part[LOW_C]])
 
     def _cfg(self) -> tuple:
         s_kind, s_param = self.s_model.code

@@ -8,8 +8,10 @@ Block layout (all arrays, positions in metres, times in seconds):
   cell, ``grid`` = [x0, y0, cell, lam_v, nx, ny] (lam_v the largest report-covariance eigenvalue);
 * pair pool ``pool = (p_h, p_score, p_mean, p_cov, p_logc, p_next, head)``: one linked list of scored
   (hypothesis, report) pairs per report, ``p_h = -1`` for a pair made stale by a later change;
-* hypotheses ``hyp = (means, covs, log_c, counts, times, dirty, dirty_list)`` with spare capacity;
-* ``istate = [N̂_D, n_dirty, k, pool size]``, ``fstate = [ln c_min, γ needed when widening]``;
+* hypotheses ``hyp = (means, covs, log_c, counts, times, dirty, dirty_list, low, is_low)`` with spare
+  capacity; ``low`` lists the hypotheses whose ln c may lie below ``fstate[0]`` (checked one by one by
+  the gate bound), every other hypothesis has ln c >= ``fstate[0]``;
+* ``istate = [N̂_D, n_dirty, k, pool size, n_low]``, ``fstate = [ln c floor, γ needed when widening]``;
 * ``cfg = (gamma, terrain_ratio, log_rmax, s_kind, s_param, motion, q, vel_std)``.
 
 A report is decided here only if no earlier decision of the block touched a hypothesis of its gate
@@ -198,7 +200,7 @@ def decide(j, cand, nc, c_h, c_score, c_mean, c_cov, c_logc, check_gate, blk, hy
     """Decide report j among candidate pairs ``cand[:nc]`` (indices into the c_* arrays) and apply the
     estimation step; returns DONE, or WIDEN when the gate bound fails (nothing changed then)."""
     z, V, t, log_unseen, half_logdet_v, conflicted, assign = blk[0], blk[1], blk[2], blk[3], blk[4], blk[5], blk[6]
-    Hm, Hc, Hlogc, Hcount, Ht, dirty, dirty_list = hyp
+    Hm, Hc, Hlogc, Hcount, Ht, dirty, dirty_list, low, is_low = hyp
     gamma, terrain_ratio, log_rmax, s_kind, s_param, motion, q, vel_std = cfg
     n = istate[0]
     best = -np.inf
@@ -211,11 +213,26 @@ def decide(j, cand, nc, c_h, c_score, c_mean, c_cov, c_logc, check_gate, blk, hy
             arg = p
     unseen = log_unseen[j] + log_s_ratio_code(s_kind, s_param, n, istate[2] + 1)
     if check_gate and n > 0:
-        extra = log_rmax - fstate[0] if terrain_ratio else 0.0
-        const = -_LOG_2PI - half_logdet_v[j] + extra
+        # Out of the gate, score_q < -d²/2 - ln(2π√det V) + (ln r_max - ln c_q for TT): bound it with
+        # d² > γ and ln c_q >= fstate[0] for most hypotheses, exactly for the listed low-c ones.
+        base = -_LOG_2PI - half_logdet_v[j]
         top = max(best, unseen)
-        if const - 0.5 * gamma > top:
-            fstate[1] = 2.0 * (const - top) * (1.0 + 1e-12) + 1e-9
+        need = 0.0
+        glob = base
+        if terrain_ratio:
+            glob = base + log_rmax - fstate[0]
+            for i in range(istate[4]):
+                h = low[i]
+                x, y, c00, c01, c11 = _pos_at(Hm, Hc, Ht, h, t[j], motion, q)
+                s00, s01, s11 = c00 + V[j, 0, 0], c01 + V[j, 0, 1], c11 + V[j, 1, 1]
+                dx, dy = z[j, 0] - x, z[j, 1] - y
+                d2 = (s11 * dx * dx - 2.0 * s01 * dx * dy + s00 * dy * dy) / (s00 * s11 - s01 * s01)
+                if d2 > gamma and base - 0.5 * d2 + log_rmax - Hlogc[h] > top:
+                    need = max(need, d2)
+        if glob - 0.5 * gamma > top:
+            need = max(need, 2.0 * (glob - top))
+        if need > 0.0:
+            fstate[1] = need * (1.0 + 1e-12) + 1e-9
             return WIDEN
     D = Hm.shape[1]
     if arg < 0 or unseen > best:
@@ -240,7 +257,10 @@ def decide(j, cand, nc, c_h, c_score, c_mean, c_cov, c_logc, check_gate, blk, hy
         Hlogc[h] = c_logc[arg]
         Hcount[h] += 1
     Ht[h] = t[j]
-    fstate[0] = min(fstate[0], Hlogc[h])
+    if Hlogc[h] < fstate[0] and not is_low[h]:
+        low[istate[4]] = h
+        is_low[h] = True
+        istate[4] += 1
     if not dirty[h]:
         dirty[h] = True
         dirty_list[istate[1]] = h
@@ -261,7 +281,7 @@ def _decide_now(j, nc, blk, pool, hyp, istate, fstate, cfg):
     ln G + ln r_max - ln c_q (∫G(b,B) r <= r_max) is below previouslyUnseen can neither be chosen nor
     beat previouslyUnseen, so it needs no integral either; otherwise return CONFLICT, changing nothing."""
     p_h, p_score, p_mean, p_cov, p_logc, p_next, head = pool
-    Hm, Hc, Hlogc, Hcount, Ht, dirty, dirty_list = hyp
+    Hm, Hc, Hlogc, Ht, dirty, dirty_list = hyp[0], hyp[1], hyp[2], hyp[4], hyp[5], hyp[6]
     z, V, t = blk[0], blk[1], blk[2]
     gamma, motion, q = cfg[0], cfg[5], cfg[6]
     D = Hm.shape[1]
