@@ -192,3 +192,19 @@ def test_score_gram_needed_pairs() -> None:
     assert part.score(w)[0] == pytest.approx(full.score(w)[0], rel=1e-12)
     with pytest.raises(ValueError, match="outside `needed`"):
         part.score(np.array([0.5, 0.0, -0.5, 0.0]))
+
+
+@settings(max_examples=5, deadline=None)
+@given(st.integers(0, 10_000), st.booleans())
+def test_score_is_a_metric_on_mixtures(seed: int, uniform_middle: bool) -> None:
+    """Score is the L2 distance between mixture densities: symmetric, zero on itself, triangle inequality."""
+    prior = _score_prior()
+    rng = np.random.default_rng(seed)
+    a, b, c = _gaussians(rng, 2), _gaussians(rng, 3), _gaussians(rng, 2)
+
+    def d(x, tx, y, ty):
+        return score(prior, *x, tx, *y, ty, integrator=reference_integrate)
+
+    ab, bc, ac = d(a, True, b, not uniform_middle), d(b, not uniform_middle, c, True), d(a, True, c, True)
+    assert ac <= ab + bc + 1e-9 * ac
+    assert d(b, not uniform_middle, a, True) == pytest.approx(ab, rel=1e-9)

@@ -155,3 +155,37 @@ def test_bad_input() -> None:
     corner = TerrainPrior.from_array(empty, prior.grid)
     with pytest.raises(ValueError, match="keep window"):
         simulate(corner, 0, n_targets=5)
+
+
+@pytest.mark.slow
+@pytest.mark.realdata
+def test_swellendam_scenario(swellendam) -> None:
+    """On the real Swellendam prior: 1 km block frequencies of the sampler match the prior's mass
+    (chi-square), and every simulated target sits where the prior is positive, inside the window."""
+    from pathlib import Path
+
+    from pipeline.build import build_region_prior
+    from pipeline.config import load_config
+
+    config = load_config(Path(__file__).resolve().parents[2] / "terrain_data" / "swellendam.toml")
+    prior = build_region_prior(config, progress=False)
+    region, keep = central_windows(prior, 14000.0, 0.5)
+    n = 50000
+    pts = sample_targets(prior, n, np.random.default_rng(12), region)
+    u, v = prior.grid.to_pixel(pts[:, 0], pts[:, 1])
+    (u0, u1), (v0, v1) = (np.rint(a).astype(int) for a in prior.grid.to_pixel(region[::2], region[3::-2]))
+    block = 50  # cells of 20 m: 1 km blocks (the last row/column of blocks may be partial)
+    nb = (-(-(v1 - v0) // block), -(-(u1 - u0) // block))
+    counts = np.zeros(nb)
+    np.add.at(counts, (((v - v0) // block).astype(int), ((u - u0) // block).astype(int)), 1)
+    padded = np.zeros((nb[0] * block, nb[1] * block))
+    padded[: v1 - v0, : u1 - u0] = prior.density[v0:v1, u0:u1]
+    mass = padded.reshape(nb[0], block, nb[1], block).sum(axis=(1, 3))
+    pos = mass > 0
+    _, p = stats.chisquare(counts[pos], n * mass[pos] / mass[pos].sum())
+    assert p > 1e-3
+    sc = simulate(prior, 3)
+    t = sc.targets
+    assert (prior.density_at(t[:, 0], t[:, 1]) > 0).all()
+    assert ((t[:, 0] >= keep[0]) & (t[:, 0] < keep[2]) & (t[:, 1] >= keep[1]) & (t[:, 1] < keep[3])).all()
+    assert len(sc.reports) == 100 and sc.n_detected <= len(t)
