@@ -103,7 +103,7 @@ def bench_bundled_build(repeat: int) -> dict:
 # --- 2. large grid (child process) ---------------------------------------------------------------
 
 def _synthetic_layers(n: int, cell: float, rng: np.random.Generator):
-    """Road lines, lake polygons, a DEM (float32, m) and vegetation codes for an n x n grid."""
+    """Road lines, lake polygons, a DEM (float64 m, as ``read_dem`` returns) and vegetation codes for an n x n grid."""
     import shapely
 
     size = n * cell
@@ -112,10 +112,10 @@ def _synthetic_layers(n: int, cell: float, rng: np.random.Generator):
     ends = starts + rng.normal(0, size / 4, (k, 2))
     roads = shapely.linestrings(np.stack([starts, (starts + ends) / 2 + rng.normal(0, size / 20, (k, 2)), ends], 1))
     lakes = shapely.buffer(shapely.points(rng.uniform(0, size, (k // 2, 2))), rng.uniform(cell, 30 * cell, k // 2))
-    x = (np.arange(n, dtype=np.float32) + 0.5) * cell
+    x = (np.arange(n, dtype=np.float64) + 0.5) * cell
     wave = 2 * np.pi / size
-    dem = (80 * np.sin(3 * wave * x)[None, :] + 60 * np.cos(5 * wave * x)[:, None]).astype(np.float32)
-    dem += (40 * np.sin(11 * wave * x)[None, :] * np.sin(7 * wave * x)[:, None]).astype(np.float32)
+    dem = 80 * np.sin(3 * wave * x)[None, :] + 60 * np.cos(5 * wave * x)[:, None]
+    dem += 40 * np.sin(11 * wave * x)[None, :] * np.sin(7 * wave * x)[:, None]
     coarse = rng.integers(1, 5, (n // 50 + 1, n // 50 + 1)).astype(np.int16)
     vegetation = np.repeat(np.repeat(coarse, 50, 0), 50, 1)[:n, :n]
     return roads, lakes, dem, vegetation
@@ -154,7 +154,8 @@ def large_grid_child(n: int) -> dict:
     stack = FeatureStack(grid)
     road_mask = step("rasterize roads", rasterize.mask, roads, grid, all_touched=True)
     water = step("rasterize lakes", rasterize.mask, lakes, grid)
-    dist = step("distance to roads", distance_m, road_mask, cell, cell, dtype=np.float32)
+    # float64 throughout, as pipeline.build makes them: the memory figure is the real build's
+    dist = step("distance to roads", distance_m, road_mask, cell, cell)
     del road_mask
     slope = step("slope", slope_deg, dem, cell, cell)
     del dem
@@ -223,7 +224,7 @@ def bench_feature_baselines(n: int, repeat: int) -> dict:
     t_ours, d = _best_of(lambda: distance_m(mask, 20.0, 20.0), repeat)
     t_scipy, ref = _best_of(lambda: distance_transform_edt(~mask, sampling=(20.0, 20.0)), repeat)
     t_slope, s = _best_of(lambda: slope_deg(dem, 20.0, 20.0), repeat)
-    t_slope_np, s_np = _best_of(lambda: _horn_numpy(dem.astype(np.float64), 20.0, 20.0), repeat)
+    t_slope_np, s_np = _best_of(lambda: _horn_numpy(dem, 20.0, 20.0), repeat)
     return {
         "n": n,
         "distance_s": t_ours,

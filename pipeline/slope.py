@@ -9,8 +9,8 @@ the two cells inward, ``2 z0 - z1``. At the four corner cells we extrapolate in 
 (``4 z00 - 2 z01 - 2 z10 + z11``), so planes stay exact everywhere; gdaldem instead repeats the
 corner column there, which halves the x-gradient of the corner cells on a plane.
 
-No data (NaN): a NaN centre gives NaN; a NaN neighbour (or an extrapolated one computed from a
-NaN) is replaced by the centre value, as gdaldem does with ``-compute_edges``.
+No data (NaN, and +-inf): a no-data centre gives NaN; a no-data neighbour (or an extrapolated one
+computed from no data) is replaced by the centre value, as gdaldem does with ``-compute_edges``.
 """
 
 from __future__ import annotations
@@ -21,48 +21,73 @@ import numpy as np
 from pipeline.features import NODATA_CODE
 
 
-def _pad_linear(dem: np.ndarray) -> np.ndarray:
-    """(H+2, W+2) copy of ``dem`` with a one-cell border extrapolated linearly (corners bilinearly)."""
+@nb.njit(cache=True)
+def _z(dem, r, c):
+    """DEM value at (r, c), extrapolated linearly one cell beyond the edges (first along columns, then rows)."""
     h, w = dem.shape
-    p = np.empty((h + 2, w + 2), dtype=dem.dtype)
-    p[1:-1, 1:-1] = dem
-    p[0, 1:-1] = 2 * dem[0] - dem[1]
-    p[-1, 1:-1] = 2 * dem[-1] - dem[-2]
-    p[:, 0] = 2 * p[:, 1] - p[:, 2]
-    p[:, -1] = 2 * p[:, -2] - p[:, -3]
-    return p
+    if c < 0:
+        return 2.0 * _z_col(dem, r, 0) - _z_col(dem, r, 1)
+    if c >= w:
+        return 2.0 * _z_col(dem, r, w - 1) - _z_col(dem, r, w - 2)
+    return _z_col(dem, r, c)
+
+
+@nb.njit(cache=True)
+def _z_col(dem, r, c):
+    h = dem.shape[0]
+    if r < 0:
+        return 2.0 * np.float64(dem[0, c]) - np.float64(dem[1, c])
+    if r >= h:
+        return 2.0 * np.float64(dem[h - 1, c]) - np.float64(dem[h - 2, c])
+    return np.float64(dem[r, c])
+
+
+@nb.njit(cache=True)
+def _horn(a, b, c, d, e, f, g, h, i, inv8dx, inv8dy):
+    """Slope (degrees) of the 3x3 window a..i (row by row, e the centre); no-data neighbours take e."""
+    # gdaldem -compute_edges: a missing neighbour takes the centre's value.
+    a = a if np.isfinite(a) else e
+    b = b if np.isfinite(b) else e
+    c = c if np.isfinite(c) else e
+    d = d if np.isfinite(d) else e
+    f = f if np.isfinite(f) else e
+    g = g if np.isfinite(g) else e
+    h = h if np.isfinite(h) else e
+    i = i if np.isfinite(i) else e
+    gx = ((c + 2.0 * f + i) - (a + 2.0 * d + g)) * inv8dx
+    gy = ((g + 2.0 * h + i) - (a + 2.0 * b + c)) * inv8dy
+    return np.degrees(np.arctan(np.sqrt(gx * gx + gy * gy)))
 
 
 @nb.njit(cache=True, parallel=True)
-def _horn_slope(p: np.ndarray, inv8dx: float, inv8dy: float, out: np.ndarray) -> None:
-    h = out.shape[0]
-    w = out.shape[1]
+def _horn_slope(dem: np.ndarray, inv8dx: float, inv8dy: float, out: np.ndarray) -> int:
+    """Fill ``out`` with Horn slopes; returns the number of cells with data. No padded copy of the DEM:
+    interior cells index it directly, edge cells extrapolate on the fly."""
+    h, w = dem.shape
+    valid = 0
     for r in nb.prange(h):
+        edge_row = r == 0 or r == h - 1
         for c in range(w):
-            e = np.float64(p[r + 1, c + 1])
-            if np.isnan(e):
+            e = np.float64(dem[r, c])
+            if not np.isfinite(e):
                 out[r, c] = np.nan
                 continue
-            a = np.float64(p[r, c])
-            b = np.float64(p[r, c + 1])
-            cc = np.float64(p[r, c + 2])
-            d = np.float64(p[r + 1, c])
-            f = np.float64(p[r + 1, c + 2])
-            g = np.float64(p[r + 2, c])
-            hh = np.float64(p[r + 2, c + 1])
-            i = np.float64(p[r + 2, c + 2])
-            # gdaldem -compute_edges: a missing neighbour takes the centre's value.
-            a = e if np.isnan(a) else a
-            b = e if np.isnan(b) else b
-            cc = e if np.isnan(cc) else cc
-            d = e if np.isnan(d) else d
-            f = e if np.isnan(f) else f
-            g = e if np.isnan(g) else g
-            hh = e if np.isnan(hh) else hh
-            i = e if np.isnan(i) else i
-            gx = ((cc + 2.0 * f + i) - (a + 2.0 * d + g)) * inv8dx
-            gy = ((g + 2.0 * hh + i) - (a + 2.0 * b + cc)) * inv8dy
-            out[r, c] = np.degrees(np.arctan(np.sqrt(gx * gx + gy * gy)))
+            valid += 1
+            if edge_row or c == 0 or c == w - 1:
+                out[r, c] = _horn(
+                    _z(dem, r - 1, c - 1), _z(dem, r - 1, c), _z(dem, r - 1, c + 1),
+                    _z(dem, r, c - 1), e, _z(dem, r, c + 1),
+                    _z(dem, r + 1, c - 1), _z(dem, r + 1, c), _z(dem, r + 1, c + 1),
+                    inv8dx, inv8dy,
+                )
+            else:
+                out[r, c] = _horn(
+                    np.float64(dem[r - 1, c - 1]), np.float64(dem[r - 1, c]), np.float64(dem[r - 1, c + 1]),
+                    np.float64(dem[r, c - 1]), e, np.float64(dem[r, c + 1]),
+                    np.float64(dem[r + 1, c - 1]), np.float64(dem[r + 1, c]), np.float64(dem[r + 1, c + 1]),
+                    inv8dx, inv8dy,
+                )
+    return valid
 
 
 def slope_deg(dem: np.ndarray, dx: float, dy: float) -> np.ndarray:
@@ -79,13 +104,11 @@ def slope_deg(dem: np.ndarray, dx: float, dy: float) -> np.ndarray:
     for name, value in (("dx", dx), ("dy", dy)):
         if not (np.isfinite(value) and value > 0):
             raise ValueError(f"slope_deg: {name} must be a positive cell size in metres, got {value}")
-    if dem.dtype != np.float32:
+    if dem.dtype not in (np.float32, np.float64):
         dem = dem.astype(np.float64)
-    dem = np.where(np.isinf(dem), np.nan, dem) if np.isinf(dem).any() else dem
-    if np.isnan(dem).all():
-        raise ValueError("slope_deg: the DEM is entirely no data (NaN)")
     out = np.empty(dem.shape, dtype=dem.dtype)
-    _horn_slope(_pad_linear(dem), 1.0 / (8.0 * dx), 1.0 / (8.0 * dy), out)
+    if _horn_slope(dem, 1.0 / (8.0 * dx), 1.0 / (8.0 * dy), out) == 0:
+        raise ValueError("slope_deg: the DEM is entirely no data (NaN)")
     return out
 
 
