@@ -105,7 +105,7 @@ class Estimate:
 class AssociationResult:
     """``assignments`` (K,) hypothesis index per report (-1: skipped off the prior),
     ``hypotheses`` the saved estimate, ``n_detected`` N̂_D, ``estimate`` the reported one,
-    ``stats`` counters (blocks, gated pairs, conflicts, widened gates)."""
+    ``stats`` counters (blocks, scored pairs, refreshes, widened gates, skipped reports, integrals)."""
 
     assignments: np.ndarray
     hypotheses: Hypotheses
@@ -240,7 +240,7 @@ class Tracker:
         self.hypotheses_ = Hypotheses(self.motion.state_dim)
         self.n_reports_ = 0
         self._last_time = -np.inf
-        self.stats_ = {"blocks": 0, "pairs": 0, "conflicts": 0, "widened": 0, "skipped": 0}
+        self.stats_ = {"blocks": 0, "pairs": 0, "conflicts": 0, "widened": 0, "skipped": 0, "integrals": 0}
 
     @property
     def terrain_association(self) -> bool:
@@ -274,6 +274,7 @@ class Tracker:
         if self.variant == "UU":
             return np.full(z.shape[0], self.log_u), np.ones(z.shape[0], bool)
         log_iz = _log(self.integrator(self.prior, z, V))
+        self.stats_["integrals"] += z.shape[0]
         on = np.isfinite(log_iz)
         return (log_iz if self.terrain_association else np.full(z.shape[0], self.log_u)), on
 
@@ -319,6 +320,7 @@ class Tracker:
         else:
             log_c = self.hypotheses_.log_c[h]
             need = self._needs_integral(log_g - log_c, blk[3][rep])
+        self.stats_["integrals"] += int(need.sum()) + (h.size if isinstance(self.motion, ConstantVelocity) else 0)
         log_i = np.zeros(h.size)
         log_i[need] = _log(self.integrator(self.prior, post_m[need, :2], np.ascontiguousarray(post_c[need, :2, :2])))
         score = np.full(h.size, -np.inf)
