@@ -43,11 +43,11 @@ import numpy as np
 from pipeline.prior import TerrainPrior, sat_rect
 from tracker.reports import check_gaussians
 
-N_TERRACES = 16
+N_TERRACES = 24
 """Default number of terraces (ellipses), from the accuracy study in docs/terrace.md."""
-N_STRIPS = 8
+N_STRIPS = 16
 """Default (minimum) number of vertical strips per ellipse."""
-SHEAR = 8.0
+SHEAR = 16.0
 """Default strips per unit of shear κ (see :func:`n_strips_for`)."""
 MASS = 0.9999
 """Default Gaussian mass covered by the terraces (beyond the grid's nearest point)."""
