@@ -57,12 +57,14 @@ def cmd_experiment(args: argparse.Namespace) -> None:
         n_datasets=args.datasets, n_reports=args.reports, taus=parse_taus(args.tau),
         variants=tuple(args.variants.split(",")), n_targets=args.targets, base_seed=args.seed,
         sensor=AirborneSensor(azimuth_std_rad=args.azimuth_std_mrad / 1000.0, range_std_m=args.range_std_m),
+        poisson_mu=args.poisson_mu,
     )
     summary, paths = run_and_write(args.prior, args.out, config, workers=args.workers, progress=not args.quiet,
                                    title=args.title or "")
     for v, d in summary["variants"].items():
         print(f"{v}: best tau {d['best_tau']:+.2f}, mean score x10^4.5 {d['best_mean_score_x10^4.5']:.2f}, "
-              f"|N_D^ - N_D| {d['mean_nd_abs_error_at_best_tau']:.2f}")
+              f"|N_D^ - N_D| {d['mean_nd_abs_error_at_best_tau']:.2f}"
+              + (f"; exact S: {d['poisson_mean_score_x10^4.5']:.2f}" if "poisson_mean_score_x10^4.5" in d else ""))
     print(f"wrote {paths['results']}, {paths['summary']}, {paths['table']} and {len(paths['figures'])} figures")
 
 
@@ -77,6 +79,7 @@ def add_experiment_parser(sub) -> None:
     p.add_argument("--variants", default="UU,UT,TT", help="comma list of UU, UT, TT")
     p.add_argument("--targets", type=int, default=200, help="targets drawn over the 14 km region before the window; default 200")
     p.add_argument("--seed", type=int, default=0, help="seed of the first data set")
+    p.add_argument("--poisson-mu", type=float, help="also run every variant with the exact eq. 16 S under Poisson(mu)")
     p.add_argument("--azimuth-std-mrad", type=float, default=2.0, help="sensor azimuth standard deviation, mrad")
     p.add_argument("--range-std-m", type=float, default=12.0, help="sensor slant-range standard deviation, m")
     p.add_argument("--workers", type=int, help="local worker processes (default: all cores; 1 runs inline)")

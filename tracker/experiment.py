@@ -31,9 +31,10 @@ from tqdm.auto import tqdm
 from pipeline.atomic import atomic_paths
 from pipeline.prior import TerrainPrior
 from tracker.association import associate, perfect_estimate
-from tracker.compare import best_tau_index, comparison_table
+from tracker.compare import best_tau_index, comparison_table, prob_better
 from tracker.metrics import ScoreGram, gospa, mixture_weights, ospa, purity
 from tracker.plots import PAPER_TABLE, table_markdown, write_figures
+from tracker.sfunc import ExpS, PoissonS, SModel
 from tracker.simulate import AirborneSensor, simulate
 
 VARIANTS = ("UU", "UT", "TT")
@@ -67,6 +68,8 @@ class ExperimentConfig:
     base_seed: int = 0
     gospa_c_m: float = 500.0
     sensor: AirborneSensor = field(default_factory=AirborneSensor)
+    poisson_mu: float | None = None
+    """Also run each variant with the exact eq. 16 S(n, k) under N_T ~ Poisson(mu) (no τ)."""
 
     def __post_init__(self) -> None:
         bad = [v for v in self.variants if v not in VARIANTS]
@@ -76,6 +79,8 @@ class ExperimentConfig:
             raise ValueError(f"n_datasets must be >= 2 (Appendix B needs a sample variance), got {self.n_datasets}")
         if not self.taus:
             raise ValueError("taus must not be empty")
+        if self.poisson_mu is not None:
+            PoissonS(self.poisson_mu)  # validates mu
 
     @property
     def seeds(self) -> list[int]:
@@ -169,7 +174,8 @@ class _Components:
 def run_dataset(prior_path: str | os.PathLike, seed: int, config: ExperimentConfig) -> list[dict]:
     """Simulate data set ``seed`` and score every variant at every τ; one record per (variant, τ).
 
-    Record fields: dataset seed, variant, tau, score (per m; the paper plots it ×10^4.5),
+    Record fields: dataset seed, variant, s_model ("exp": S = e^{-nτ}; "poisson": eq. 16 with
+    ``config.poisson_mu``, tau NaN), tau, score (per m; the paper plots it ×10^4.5),
     score_error_bound (bound on |Score²| error from skipped negligible pairs, per m²), nd_hat, nd,
     nd_abs_error, gospa_m and ospa_m (metres, cut-off ``gospa_c_m``; points are the Gaussian means),
     purity, skipped (reports off the prior, left unassigned), n_targets (kept targets in the window).
@@ -184,20 +190,24 @@ def run_dataset(prior_path: str | os.PathLike, seed: int, config: ExperimentConf
     detected = sc.targets[perfect.labels]
     nd = len(ref)
 
+    # (label, τ, S model): the paper's e^{-nτ} per τ, and optionally eq. 16 under Poisson(μ).
+    settings = [("exp", float(tau), ExpS(float(tau))) for tau in config.taus]
+    if config.poisson_mu is not None:
+        settings.append(("poisson", float("nan"), PoissonS(config.poisson_mu)))
     evaluations = []
-    runs: dict[tuple[str, float], object] = {}
+    runs: dict[tuple[str, SModel], object] = {}
     for variant in config.variants:
         # UT associates exactly as UU (paper sec. 6); only its reported estimate differs.
         assoc_variant = "UU" if variant == "UT" else variant
-        for tau in config.taus:
-            res = runs.get((assoc_variant, tau))
+        for label, tau, s_model in settings:
+            res = runs.get((assoc_variant, s_model))
             if res is None:
-                res = runs[(assoc_variant, tau)] = associate(
-                    prior, reports, assoc_variant, tau=tau, off_prior="skip", integrator=integrator
+                res = runs[(assoc_variant, s_model)] = associate(
+                    prior, reports, assoc_variant, s_model=s_model, off_prior="skip", integrator=integrator
                 )
             est = res.estimate
             members = comps.register(res.assignments, est.means, est.covs, variant != "UU")
-            evaluations.append((variant, tau, res, members))
+            evaluations.append((variant, label, tau, res, members))
 
     gram = comps.gram(prior, integrator, (np.concatenate([members, ref]) for *_, members in evaluations))
     n = len(comps.means)
@@ -205,7 +215,7 @@ def run_dataset(prior_path: str | os.PathLike, seed: int, config: ExperimentConf
     records = []
     # Association-only metrics, once per distinct association (UT shares UU's; τ runs often agree).
     assoc_metrics: dict[bytes, dict] = {}
-    for variant, tau, res, members in evaluations:
+    for variant, label, tau, res, members in evaluations:
         s, err = gram.score(mixture_weights(n, members) + w_ref)
         key = res.assignments.tobytes()
         if key not in assoc_metrics:
@@ -218,7 +228,7 @@ def run_dataset(prior_path: str | os.PathLike, seed: int, config: ExperimentConf
                 "skipped": int((~on).sum()),
             }
         records.append({
-            "seed": int(seed), "variant": variant, "tau": float(tau), "score": s, "score_error_bound": err,
+            "seed": int(seed), "variant": variant, "s_model": label, "tau": tau, "score": s, "score_error_bound": err,
             "nd_hat": int(res.n_detected), "nd": nd, "nd_abs_error": abs(int(res.n_detected) - nd),
             **assoc_metrics[key], "n_targets": int(len(sc.targets)),
         })
@@ -274,7 +284,10 @@ def score_matrix(results: pd.DataFrame, variant: str, column: str = "score") -> 
 
 
 def summarise(results: pd.DataFrame, config: ExperimentConfig) -> dict:
-    """Per-variant curves, best τ, and Table 1 (normal and t forms) beside the paper's values."""
+    """Per-variant curves, best τ, and Table 1 (normal and t forms) beside the paper's values; with
+    Poisson rows, each variant's exact-S score and P(exact S better than the best τ)."""
+    poisson = results[results["s_model"] == "poisson"]
+    results = results[results["s_model"] == "exp"]
     variants = [v for v in VARIANTS if v in set(results["variant"])]
     taus = sorted(results["tau"].unique())
     per_variant = {}
@@ -298,6 +311,13 @@ def summarise(results: pd.DataFrame, config: ExperimentConfig) -> dict:
             "std_score_by_tau": s.std(axis=0, ddof=1).tolist(),
             "mean_nd_abs_error_by_tau": nd_err.mean(axis=0).tolist(),
         }
+        if len(poisson):
+            p = poisson[poisson["variant"] == v].sort_values("seed")
+            per_variant[v].update({
+                "poisson_mean_score_x10^4.5": float(p["score"].mean() * 10**4.5),
+                "poisson_mean_nd_abs_error": float(p["nd_abs_error"].mean()),
+                "prob_poisson_better_than_best_tau": prob_better(p["score"].to_numpy() - s[:, b], "normal"),
+            })
     config_dict = asdict(config)
     return {
         "config": config_dict,

@@ -39,10 +39,22 @@ def _errorbar_panel(ax: plt.Axes, results: pd.DataFrame, variants: Sequence[str]
         ax.legend()
 
 
+def _split(results: pd.DataFrame) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """(rows with S = e^{-nτ}, rows with the exact eq. 16 S, which have no τ)."""
+    exact = results["s_model"] == "poisson"
+    return results[~exact], results[exact]
+
+
 def score_figure(results: pd.DataFrame, variant: str, path: Path, title: str = "") -> Path:
-    """Mean Score (×10^4.5 per m) versus τ with ±1 standard deviation bars (Figures 11–13)."""
+    """Mean Score (×10^4.5 per m) versus τ with ±1 standard deviation bars (Figures 11–13); a dashed
+    line for the exact-S (Poisson) runs when present."""
+    results, exact = _split(results)
     fig, ax = plt.subplots(figsize=(5, 3.4))
     _errorbar_panel(ax, results, [variant], "score", SCORE_SCALE)
+    mean_exact = exact.loc[exact["variant"] == variant, "score"].mean() * SCORE_SCALE
+    if exact["variant"].eq(variant).any():
+        ax.axhline(mean_exact, ls="--", color="0.3", lw=1, label="exact S, Poisson(μ)")
+        ax.legend()
     ax.set_ylabel("Score × 10^4.5 (1/m)")
     ax.set_title(title or f"Average scores, {variant}")
     fig.tight_layout()
@@ -51,6 +63,7 @@ def score_figure(results: pd.DataFrame, variant: str, path: Path, title: str = "
 
 def nd_error_figure(results: pd.DataFrame, variants: Sequence[str], path: Path, title: str = "") -> Path:
     """Mean |N̂_D − N_D| after all reports versus τ, ±1 standard deviation (Figures 14–15)."""
+    results, _ = _split(results)
     fig, ax = plt.subplots(figsize=(5, 3.4))
     _errorbar_panel(ax, results, variants, "nd_abs_error", 1.0)
     ax.set_ylabel("|N̂_D − N_D|")
@@ -63,6 +76,7 @@ def overview_figure(results: pd.DataFrame, variants: Sequence[str], path: Path, 
     """Mean Score, |N̂_D − N_D|, GOSPA and purity versus τ for all variants on one page."""
     panels = [("score", SCORE_SCALE, "Score × 10^4.5 (1/m)"), ("nd_abs_error", 1.0, "|N̂_D − N_D|"),
               ("gospa_m", 1.0, "GOSPA (m)"), ("purity", 1.0, "association purity")]
+    results, _ = _split(results)
     fig, axes = plt.subplots(2, 2, figsize=(9, 6.5))
     for ax, (column, scale, label) in zip(axes.ravel(), panels, strict=True):
         for variant in variants:

@@ -23,6 +23,7 @@ from tracker.experiment import (
     write_outputs,
 )
 from tracker.metrics import score
+from tracker.sfunc import ExpS, PoissonS
 from tracker.simulate import AirborneSensor, simulate
 from tracker.terrace import integrate
 
@@ -83,24 +84,27 @@ def test_cached_integrator_matches_terrace(prior_path: str) -> None:
 
 
 def test_run_dataset_matches_direct_scoring(prior_path: str) -> None:
-    config = _config()
+    config = _config(poisson_mu=150.0)
     records = pd.DataFrame(run_dataset(prior_path, 5, config))
-    assert len(records) == 3 * len(TAUS)
+    assert len(records) == 3 * (len(TAUS) + 1)
+    exact = records[records.s_model == "poisson"]
+    assert len(exact) == 3 and exact.tau.isna().all()
     prior = TerrainPrior.read(prior_path)
     sc = simulate(prior, 5, config.n_targets, config.n_reports, config.region_m, config.keep_fraction, config.sensor)
     ref = perfect_estimate(prior, sc.reports)
     nd = np.unique(sc.reports.truth).size
     for _, rec in records.iterrows():
         assoc = "UU" if rec.variant == "UT" else rec.variant
-        res = associate(prior, sc.reports, assoc, tau=rec.tau)  # fresh: no shared cache
+        s_model = PoissonS(150.0) if rec.s_model == "poisson" else ExpS(rec.tau)
+        res = associate(prior, sc.reports, assoc, s_model=s_model)  # fresh: no shared cache
         est = res.estimate
         expected = score(prior, est.means, est.covs, rec.variant != "UU", ref.means, ref.covs, True)
         assert rec.score == pytest.approx(expected, rel=1e-9, abs=1e-12)
         assert rec.nd == nd and rec.nd_hat == res.n_detected
         assert rec.nd_abs_error == abs(res.n_detected - nd)
     # UT associates exactly as UU: only the score may differ.
-    uu = records[records.variant == "UU"].set_index("tau")
-    ut = records[records.variant == "UT"].set_index("tau")
+    uu = records[records.variant == "UU"].set_index(["s_model", "tau"])
+    ut = records[records.variant == "UT"].set_index(["s_model", "tau"])
     for col in ("nd_hat", "purity", "gospa_m", "ospa_m"):
         pd.testing.assert_series_equal(uu[col], ut[col])
 
@@ -139,11 +143,15 @@ def test_cli_experiment(prior_path: str, tmp_path, capsys) -> None:
 
     out = tmp_path / "cli"
     argv = ["experiment", "--prior", prior_path, "--datasets", "2", "--reports", "15", "--tau", "-2:2:2",
-            "--targets", "60", "--workers", "1", "--quiet", "--out", str(out)]
+            "--targets", "60", "--workers", "1", "--quiet", "--poisson-mu", "80", "--out", str(out)]
     assert main(argv) == 0
     results = pd.read_parquet(out / "results.parquet")
-    assert sorted(results["tau"].unique()) == [-2.0, 0.0, 2.0]
-    assert set(results["seed"]) == {0, 1} and len(results) == 2 * 3 * 3
+    paper = results[results.s_model == "exp"]
+    assert sorted(paper["tau"].unique()) == [-2.0, 0.0, 2.0]
+    assert set(results["seed"]) == {0, 1} and len(results) == 2 * 3 * (3 + 1)
+    summary = json.loads((out / "summary.json").read_text())
+    exact_tt = results[(results.s_model == "poisson") & (results.variant == "TT")]["score"]
+    assert summary["variants"]["TT"]["poisson_mean_score_x10^4.5"] == pytest.approx(exact_tt.mean() * 10**4.5)
     assert "best tau" in capsys.readouterr().out
     assert main(["experiment", "--prior", str(tmp_path / "missing.tif"), "--out", str(out)]) == 1
     assert "missing.tif" in capsys.readouterr().err
