@@ -175,15 +175,19 @@ def lidar_surface(
         raise LidarError(f"normal_radius must be a positive distance in metres, got {normal_radius}")
     if not max_nn >= 3:
         raise LidarError(f"max_nn must be at least 3 neighbours to fit a plane, got {max_nn}")
-    cell, inside = _cells(points, grid)
+    radius = 1.5 * max(grid.dx, grid.dy) if normal_radius is None else float(normal_radius)
+    # Normals from the points on the grid and within one radius of it: edge cells get full
+    # neighbourhoods, and a cloud much larger than the grid costs only what the grid needs.
+    xmin, ymin, xmax, ymax = grid.bounds
+    x, y = points[:, 0], points[:, 1]
+    near = points[(x >= xmin - radius) & (x <= xmax + radius) & (y >= ymin - radius) & (y <= ymax + radius)]
+    cell, inside = _cells(near, grid)
     if cell.size == 0:
         raise LidarError(f"{name}: none of its {points.shape[0]} points falls on the grid {grid.bounds}")
     n_cells = grid.height * grid.width
     count = np.bincount(cell, minlength=n_cells)
-    radius = 1.5 * max(grid.dx, grid.dy) if normal_radius is None else float(normal_radius)
-    # Normals from all points, so cells on the grid's edge still get full neighbourhoods.
-    normals = _upward_normals(points, radius, max_nn)[inside]
-    pts = points[inside]
+    normals = _upward_normals(near, radius, max_nn)[inside]
+    pts = near[inside]
     z_ref = float(pts[:, 2].mean())  # keeps per-cell sums precise at any altitude
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = np.stack(

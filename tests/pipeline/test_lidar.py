@@ -156,3 +156,19 @@ def test_fill_gaps_reproduces_planes(shape, seed, density):
     r, c = np.indices(shape)
     values = 0.37 * c - 1.3 * r + 4.0
     np.testing.assert_allclose(_fill_gaps(np.where(known, values, np.nan), known), values, atol=1e-9)
+
+
+def test_points_far_off_the_grid_do_not_matter():
+    """Only neighbours within the normal radius count, so a cloud three times the grid's size gives
+    the same surface as the part of it within two radii of the grid."""
+    rng = np.random.default_rng(5)
+    xmin, ymin, xmax, ymax = GRID.bounds
+    x = rng.uniform(xmin - 80, xmax + 80, 40000)
+    y = rng.uniform(ymin - 60, ymax + 60, 40000)
+    points = np.c_[x, y, np.sin(x / 9.0) * 3 + 0.1 * y]
+    margin = 2 * 1.5 * GRID.dx
+    close = (x > xmin - margin) & (x < xmax + margin) & (y > ymin - margin) & (y < ymax + margin)
+    big, small = lidar_surface(points, GRID), lidar_surface(points[close], GRID)
+    np.testing.assert_allclose(big.elevation, small.elevation, rtol=1e-12)
+    np.testing.assert_allclose(big.slope, small.slope, rtol=1e-12)
+    np.testing.assert_array_equal(big.count, small.count)
