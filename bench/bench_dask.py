@@ -1,7 +1,7 @@
 """Dask benchmarks: a 20,000 x 20,000 prior (400 M cells of 20 m) built tiled, and the in-memory build beside it.
 
 Run: ``.venv/bin/python -c "import bench.bench_dask as b, json; print(json.dumps(b.run(quick=True), indent=1))"``
-(``quick``: 2,000 x 2,000 tiled, 1,000 x 1,000 compared; full: 20,000 tiled, 10,000 compared).
+(``quick``: 1,000 x 1,000 tiled and compared; full: 20,000 tiled, 10,000 compared).
 
 Inputs are generated, nothing is downloaded (cached in ``$TMPDIR/terrain-bench-dask``): a DEM GeoTIFF
 at 40 m (sums of sines, bilinearly resampled onto the 20 m grid), random road polylines and lake
@@ -165,15 +165,15 @@ def _rates(summary: dict) -> dict:
 
 def run(quick: bool = False) -> dict:
     """Tiled build of the big grid, and tiled vs in-memory at a size where the in-memory build fits."""
-    big, small = (2000, 1000) if quick else (20_000, 10_000)
-    tile = 500 if quick else 2048
+    big, small = (1000, 1000) if quick else (20_000, 10_000)
+    tile = 250 if quick else 2048
     folder = make_inputs(big, _cache_dir() / f"n{big}")
     with tempfile.TemporaryDirectory(prefix="bench-dask-", dir=folder) as tmp:
         tmp = Path(tmp)
         small_cfg, big_cfg = write_region(folder, small, f"small{small}"), write_region(folder, big, f"big{big}")
         memory = _run_child("memory", small_cfg, tmp / "memory.tif", tile)
         tiled_small = _run_child("tiled", small_cfg, tmp / "tiled_small.tif", tile)
-        tiled_big = _run_child("tiled", big_cfg, tmp / "tiled_big.tif", tile)
+        tiled_big = tiled_small if big == small else _run_child("tiled", big_cfg, tmp / "tiled_big.tif", tile)
     ratio = tiled_small["seconds"] / memory["seconds"]
     rates = _rates(tiled_big["summary"])
     mean_rate = float(np.mean([r["tiles_per_s"] for r in rates.values()]))
@@ -196,7 +196,7 @@ def run(quick: bool = False) -> dict:
         {"what": f"tiled vs in-memory {small}x{small}",
          "value": f"{tiled_small['seconds']:.1f} s vs {memory['seconds']:.1f} s ({ratio:.2f}x); "
                   f"peaks {tiled_small['peak_gib']:.2f} vs {memory['peak_gib']:.2f} GiB",
-         "goal": f"<= {GOAL_RATIO:g}x", "ok": result["tiled_compare"]["meets_goal"]},
+         "goal": f"<= {GOAL_RATIO:g}x (at 10,000; small grids are all start-up)", "ok": result["tiled_compare"]["meets_goal"]},
     ]
     return result
 
