@@ -93,7 +93,7 @@ def cluster_tracks(track_means, track_covs, *, min_separation: float,
                    np.zeros(0) if tm.shape[1] == 2 * dim else None, track_times, process_noise)
     n = tm.shape[0]
     t_mid = 0.5 * (t_lo + t_hi)
-    reach = ReachBound(sc.tcov, sc.tq, dim, sc.moving)
+    reach = ReachBound.from_covs(sc.tcov, sc.tq, dim, sc.moving)
     dt_max = np.maximum(np.abs(t_lo - sc.ttime), np.abs(t_hi - sc.ttime))
     spd = speed(tm, dim) if sc.moving else np.zeros(n)
     ext = np.sqrt(gamma) * reach.sigma(dt_max) + spd * 0.5 * (t_hi - t_lo)

@@ -12,19 +12,26 @@ in the same numba kernel. Positions in metres, times in seconds, velocities in m
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.stats import chi2
 
 from tracker import costmodel
-from tracker.gating_exact import RADIUS_SLACK, bad_covariances, lambda_max_bound, log_det
+from tracker.gating_exact import (
+    RADIUS_SLACK,
+    bad_covariances,
+    lambda_max_bound,
+    log_det,
+    nonfinite_rows,
+)
 from tracker.gating_grid import (
     build_grid,
     counting_order,
     query_grid,
     sort_pairs,
     spatial_order,
+    take_rows,
 )
 from tracker.motion import ReachBound, max_abs_dt, speed
 
@@ -89,8 +96,11 @@ def gate(track_means, track_covs, report_means, report_covs, threshold: float | 
     nt, nr = sc.tpos.shape[0], sc.rpos.shape[0]
     if nt == 0 or nr == 0:
         return _result(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), return_d2)
-    sc, t_perm, r_perm = _spatially_sorted(sc)
     plan = _plan(sc, gamma, w_logdet, n_projections, orientation)
+    sc, t_perm, r_perm = _spatially_sorted(sc, plan.on_reports)
+    plan = replace(plan, bin_of_report=plan.bin_of_report[r_perm], reach=plan.reach.take(t_perm),
+                   speed=plan.speed[t_perm], lam_r=plan.lam_r[r_perm],
+                   gamma_r=plan.gamma_r[r_perm], gamma_t=plan.gamma_t[t_perm])
     parts = []
     by_bin, bin_start = counting_order(plan.bin_of_report, plan.m)
     for k in range(plan.m):
@@ -105,17 +115,26 @@ def gate(track_means, track_covs, report_means, report_covs, threshold: float | 
     return _result(t_idx[order], r_idx[order], d2[order], return_d2)
 
 
-def _spatially_sorted(sc: _Scene) -> tuple[_Scene, np.ndarray, np.ndarray]:
-    """The scene with tracks (at mid-scan) and reports in spatial order, and both permutations.
+def _spatially_sorted(sc: _Scene, on_reports: bool) -> tuple[_Scene, np.ndarray, np.ndarray]:
+    """The scene with the querying set in spatial order, and both permutations.
 
     Neighbouring queries then touch neighbouring cells and points: the kernels are bound by
-    memory latency, not arithmetic."""
-    t_mid = 0.5 * (sc.rtime.min() + sc.rtime.max()) if sc.moving else 0.0
+    memory latency, not arithmetic. The gridded set is copied into cell order per bin anyway.
+    """
+    nt, nr = sc.tpos.shape[0], sc.rpos.shape[0]
+    if not on_reports:  # reports query
+        r_perm = spatial_order(sc.rpos)
+        return replace(sc, rpos=take_rows(sc.rpos, r_perm), rcov=take_rows(sc.rcov, r_perm),
+                       rtime=sc.rtime[r_perm]), np.arange(nt), r_perm
+    if not sc.moving:
+        t_perm = spatial_order(sc.tpos)
+        return replace(sc, tpos=take_rows(sc.tpos, t_perm),
+                       tcov=take_rows(sc.tcov, t_perm)), t_perm, np.arange(nr)
+    t_mid = 0.5 * (sc.rtime.min() + sc.rtime.max())
     t_perm = spatial_order(sc.tpos + (t_mid - sc.ttime)[:, None] * sc.tvel)
-    r_perm = spatial_order(sc.rpos)
-    return _Scene(sc.dim, sc.moving, sc.tpos[t_perm], sc.tvel[t_perm], sc.tcov[t_perm],
-                  sc.ttime[t_perm], sc.tq[t_perm], sc.rpos[r_perm], sc.rcov[r_perm],
-                  sc.rtime[r_perm]), t_perm, r_perm
+    return replace(sc, tpos=take_rows(sc.tpos, t_perm), tvel=take_rows(sc.tvel, t_perm),
+                   tcov=take_rows(sc.tcov, t_perm), ttime=sc.ttime[t_perm],
+                   tq=sc.tq[t_perm]), t_perm, np.arange(nr)
 
 
 def _result(t_idx, r_idx, d2, return_d2):
@@ -146,7 +165,7 @@ def _as_float(name: str, x, ndim: int) -> np.ndarray:
 
 
 def _check_finite(name: str, a: np.ndarray) -> None:
-    bad = ~np.isfinite(a.reshape(a.shape[0], -1)).all(axis=1) if a.size else np.zeros(0, bool)
+    bad = nonfinite_rows(a.reshape(a.shape[0], a[0].size if len(a) else 0))
     if bad.any():
         raise ValueError(f"{name} has non-finite values at indices {np.flatnonzero(bad)[:10]}")
 
@@ -227,7 +246,7 @@ class _Plan:
 
 def _plan(sc: _Scene, gamma: float, w_logdet: float, n_projections, orientation) -> _Plan:
     lam_r = lambda_max_bound(sc.rcov)
-    reach = ReachBound(sc.tcov, sc.tq, sc.dim, sc.moving)
+    reach = ReachBound.from_covs(sc.tcov, sc.tq, sc.dim, sc.moving)
     spd = speed(np.hstack([sc.tpos, sc.tvel]), sc.dim) if sc.moving else np.zeros(len(sc.tpos))
     gamma_r = gamma - w_logdet * log_det(sc.rcov) if w_logdet else np.full(len(lam_r), gamma)
     if w_logdet and not sc.moving:
@@ -321,14 +340,15 @@ def _gate_bin(sc: _Scene, plan: _Plan, k: int, reports: np.ndarray, gamma: float
         rows = grid.members
         t_loc, r_loc, d2 = query_grid(
             np.ascontiguousarray(qpos), np.ascontiguousarray(rad), True, *_grid_args(grid),
-            sc.tpos, sc.tvel, sc.tcov, sc.ttime, sc.tq, sc.rpos[rows], sc.rcov[rows],
-            sc.rtime[rows], sc.moving, gamma, w_logdet)
+            sc.tpos, sc.tvel, sc.tcov, sc.ttime, sc.tq, take_rows(sc.rpos, rows),
+            take_rows(sc.rcov, rows), sc.rtime[rows], sc.moving, gamma, w_logdet)
         return t_loc, rows[r_loc], d2
     rows = grid.members
     t_loc, r_loc, d2 = query_grid(
         np.ascontiguousarray(qpos), np.ascontiguousarray(rad), False, *_grid_args(grid),
-        sc.tpos[rows], sc.tvel[rows], sc.tcov[rows], sc.ttime[rows], sc.tq[rows],
-        sc.rpos[reports], sc.rcov[reports], sc.rtime[reports], sc.moving, gamma, w_logdet)
+        take_rows(sc.tpos, rows), take_rows(sc.tvel, rows), take_rows(sc.tcov, rows),
+        sc.ttime[rows], sc.tq[rows], take_rows(sc.rpos, reports), take_rows(sc.rcov, reports),
+        sc.rtime[reports], sc.moving, gamma, w_logdet)
     return rows[t_loc], reports[r_loc], d2
 
 
@@ -339,6 +359,8 @@ def _grid_args(grid):
 
 def _bucket_max(x: np.ndarray, bid: np.ndarray, nb: int) -> np.ndarray:
     """Max of x per bucket; 0 for empty buckets (the grid skips those)."""
+    if nb == 1:
+        return np.array([float(x.max())]) if x.size else np.zeros(1)
     out = np.full(nb, -np.inf)
     np.maximum.at(out, bid, x)
     out[np.isneginf(out)] = 0.0
@@ -346,9 +368,11 @@ def _bucket_max(x: np.ndarray, bid: np.ndarray, nb: int) -> np.ndarray:
 
 
 def _bucket_cell(rad: np.ndarray) -> np.ndarray:
-    """Cell edge per bucket: the median query radius (cells visited vs candidates scanned)."""
+    """Cell edge per bucket: the median query radius (cells visited vs candidates scanned),
+    from an evenly spaced sample of the queries."""
     cells = np.empty(rad.shape[1])
+    step = max(1, rad.shape[0] // 4096)
     for b in range(rad.shape[1]):
-        r = rad[:, b][rad[:, b] > 0.0]
+        r = rad[::step, b][rad[::step, b] > 0.0]
         cells[b] = float(np.median(r)) if r.size else 1.0
     return cells

@@ -82,6 +82,17 @@ def lambda_max_bound(c):
 
 
 @njit(cache=True)
+def nonfinite_rows(a):
+    """Flags (N,) of rows of a 2-D array holding a NaN or an infinity."""
+    bad = np.zeros(a.shape[0], dtype=np.bool_)
+    for i in range(a.shape[0]):
+        for j in range(a.shape[1]):
+            if not np.isfinite(a[i, j]):
+                bad[i] = True
+    return bad
+
+
+@njit(cache=True)
 def log_det(c):
     """ln det of each symmetric positive-definite (N, d, d) matrix (closed form)."""
     n, dim = c.shape[0], c.shape[1]
@@ -120,8 +131,8 @@ def bad_covariances(c, sym_rtol):
     """Flags (N,) of matrices that are non-finite, asymmetric beyond ``sym_rtol`` or not PD."""
     n, dim = c.shape[0], c.shape[1]
     bad = np.zeros(n, dtype=np.bool_)
-    for i in prange(n):
-        work = np.empty((dim, dim))
+    work = np.empty((dim, dim))
+    for i in range(n):
         scale = 0.0
         ok = True
         for r in range(dim):

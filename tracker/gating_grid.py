@@ -66,7 +66,7 @@ def build_grid(pos: np.ndarray, members: np.ndarray, bucket: np.ndarray, n_bucke
             table_seg.append(table_seg[-1])
             continue
         p = pos[idx]
-        lo, hi = p.min(axis=0), p.max(axis=0)
+        lo, hi = bounding_box(p)
         extent = hi - lo
         h = max(float(cell[b]), float(extent.max()) / _MAX_AXIS_CELLS, 1e-300)
         ncell = np.floor(extent / h).astype(np.int64) + 1
@@ -94,6 +94,34 @@ def build_grid(pos: np.ndarray, members: np.ndarray, bucket: np.ndarray, n_bucke
         table_seg.append(table_seg[-1] + tables[-1].size)
     return Grid(origin, cells, dims, seg, keys_all, members_all, dense,
                 np.asarray(table_seg, dtype=np.int64), np.concatenate(tables))
+
+
+def take_rows(a: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """a[rows] for C-contiguous arrays of any rank (a flat gather; numpy's fancy indexing of
+    3-D arrays is several times slower)."""
+    flat = np.ascontiguousarray(a).reshape(a.shape[0], int(np.prod(a.shape[1:])))
+    return _take_rows(flat, rows).reshape((rows.shape[0],) + a.shape[1:])
+
+
+@njit(cache=True)
+def _take_rows(a, rows):
+    out = np.empty((rows.shape[0], a.shape[1]), a.dtype)
+    for i in range(rows.shape[0]):
+        out[i] = a[rows[i]]
+    return out
+
+
+@njit(cache=True)
+def bounding_box(pos):
+    """Per-axis minimum and maximum of points (n, d), n > 0 (numpy's axis-0 reductions over
+    narrow arrays are several times slower)."""
+    lo = pos[0].copy()
+    hi = pos[0].copy()
+    for i in range(1, pos.shape[0]):
+        for a in range(pos.shape[1]):
+            lo[a] = min(lo[a], pos[i, a])
+            hi[a] = max(hi[a], pos[i, a])
+    return lo, hi
 
 
 @njit(cache=True)
@@ -257,7 +285,7 @@ def spatial_order(pos: np.ndarray) -> np.ndarray:
     n = pos.shape[0]
     if n == 0:
         return np.zeros(0, np.int64)
-    lo, hi = pos.min(axis=0), pos.max(axis=0)
+    lo, hi = bounding_box(pos)
     extent = hi - lo
     if not extent.max() > 0.0:
         return np.arange(n)

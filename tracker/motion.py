@@ -6,6 +6,7 @@ times (seconds), and bound how far a track's gate can reach within a time window
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
@@ -40,6 +41,7 @@ def project(means: np.ndarray, covs: np.ndarray, dt: np.ndarray | float,
     return pos, cov
 
 
+@dataclass(frozen=True)
 class ReachBound:
     """Per-track bound on the gate's spatial spread after |dt| seconds (metres).
 
@@ -48,13 +50,21 @@ class ReachBound:
     p + dt v, and the process noise adds its own eigenvalue.
     """
 
-    def __init__(self, covs: np.ndarray, q: np.ndarray, dim: int, moving: bool):
-        self.s_p = np.sqrt(lambda_max_bound(np.ascontiguousarray(covs[:, :dim, :dim])))
-        if moving:
-            self.s_v = np.sqrt(lambda_max_bound(np.ascontiguousarray(covs[:, dim:, dim:])))
-        else:
-            self.s_v = np.zeros_like(self.s_p)
-        self.q = np.broadcast_to(np.asarray(q, dtype=float), self.s_p.shape)
+    s_p: np.ndarray
+    s_v: np.ndarray
+    q: np.ndarray
+
+    @classmethod
+    def from_covs(cls, covs: np.ndarray, q, dim: int, moving: bool) -> ReachBound:
+        """From state covariances (N, d, d) static or (N, 2d, 2d) CV, and q (scalar or (N,))."""
+        s_p = np.sqrt(lambda_max_bound(np.ascontiguousarray(covs[:, :dim, :dim])))
+        s_v = (np.sqrt(lambda_max_bound(np.ascontiguousarray(covs[:, dim:, dim:])))
+               if moving else np.zeros_like(s_p))
+        return cls(s_p, s_v, np.broadcast_to(np.asarray(q, dtype=float), s_p.shape))
+
+    def take(self, rows: np.ndarray) -> ReachBound:
+        """The bounds of tracks ``rows``."""
+        return ReachBound(self.s_p[rows], self.s_v[rows], self.q[rows])
 
     def sigma(self, abs_dt: np.ndarray | float, rows=slice(None)) -> np.ndarray:
         """Upper bound on sqrt(lambda_max) of the position covariance of tracks ``rows`` after

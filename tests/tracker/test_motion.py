@@ -43,7 +43,7 @@ def test_reach_bound_dominates_projected_spread(seed, dim, q, cond):
     rng = np.random.default_rng(seed)
     n = 20
     p = random_covs(rng, n, 2 * dim, 0.5, 50.0, cond)
-    reach = ReachBound(p, np.full(n, q), dim, moving=True)
+    reach = ReachBound.from_covs(p, np.full(n, q), dim, moving=True)
     for dt in (0.0, 0.3, -2.0, 7.5):
         _, cov = project(np.zeros((n, 2 * dim)), p, dt, q, dim)
         true = np.sqrt(np.linalg.eigvalsh(cov)[:, -1])
