@@ -18,7 +18,7 @@ from scipy.spatial import cKDTree
 
 from tracker.gating import _validate, gate_threshold
 from tracker.gating_exact import lambda_max_bound, log_det
-from tracker.motion import ReachBound, project, speed
+from tracker.motion import ReachBound, project, project_states, speed
 
 
 @dataclass(frozen=True)
@@ -99,16 +99,10 @@ def cluster_tracks(track_means, track_covs, *, min_separation: float,
     ext = np.sqrt(gamma) * reach.sigma(dt_max) + spd * 0.5 * (t_hi - t_lo)
     centre = sc.tpos + (t_mid - sc.ttime)[:, None] * sc.tvel
     labels = _components(centre, ext, float(min_separation))
-    state = tm if sc.moving else sc.tpos
     if sc.moving:  # bring every member to t_mid before averaging
-        dt = t_mid - sc.ttime
-        f = np.tile(np.eye(2 * dim), (n, 1, 1))
-        f[:, :dim, dim:] = dt[:, None, None] * np.eye(dim)
-        state = np.einsum("nij,nj->ni", f, tm)
-        cov = np.einsum("nij,njk,nlk->nil", f, sc.tcov, f)
-        cov[:, :dim, :dim] += (sc.tq * np.abs(dt) ** 3 / 3)[:, None, None] * np.eye(dim)
+        state, cov = project_states(tm, sc.tcov, t_mid - sc.ttime, sc.tq, dim)
     else:
-        cov = sc.tcov
+        state, cov = sc.tpos, sc.tcov
     mu, s = pseudotracks(state, cov, labels, weights)
     q_c = np.zeros(len(mu))
     np.maximum.at(q_c, labels, sc.tq)

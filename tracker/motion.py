@@ -41,6 +41,25 @@ def project(means: np.ndarray, covs: np.ndarray, dt: np.ndarray | float,
     return pos, cov
 
 
+def project_states(means: np.ndarray, covs: np.ndarray, dt: np.ndarray | float,
+                   q: np.ndarray | float, dim: int) -> tuple[np.ndarray, np.ndarray]:
+    """Full CV states (N, 2d) and covariances (N, 2d, 2d) moved by dt (s): F x, F P F^T + Q with
+    Q = q [[|dt|^3/3, |dt|^2/2], [|dt|^2/2, |dt|]] (x) I_d."""
+    n = means.shape[0]
+    dt = np.broadcast_to(np.asarray(dt, dtype=float), (n,))
+    a = np.abs(dt)
+    q = np.broadcast_to(np.asarray(q, dtype=float), (n,))
+    eye = np.eye(dim)
+    f = np.tile(np.eye(2 * dim), (n, 1, 1))
+    f[:, :dim, dim:] = dt[:, None, None] * eye
+    qm = np.zeros((n, 2 * dim, 2 * dim))
+    qm[:, :dim, :dim] = (q * a**3 / 3)[:, None, None] * eye
+    qm[:, :dim, dim:] = qm[:, dim:, :dim] = (q * a**2 / 2)[:, None, None] * eye
+    qm[:, dim:, dim:] = (q * a)[:, None, None] * eye
+    return (np.einsum("nij,nj->ni", f, means),
+            np.einsum("nij,njk,nlk->nil", f, covs, f) + qm)
+
+
 @dataclass(frozen=True)
 class ReachBound:
     """Per-track bound on the gate's spatial spread after |dt| seconds (metres).

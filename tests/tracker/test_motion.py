@@ -13,7 +13,7 @@ from scipy.optimize import minimize_scalar
 from tests.tracker.test_gating_oracle import random_covs
 from tracker import costmodel
 from tracker.gating_exact import lambda_max_bound
-from tracker.motion import ReachBound, ball_volume, project
+from tracker.motion import ReachBound, ball_volume, project, project_states
 
 
 @settings(max_examples=30, deadline=None)
@@ -25,6 +25,7 @@ def test_project_matches_transition_matrices(seed, dim, q):
     p = random_covs(rng, n, 2 * dim, 0.5, 50.0, 100.0)
     dt = rng.uniform(-10, 10, n)
     pos, cov = project(x, p, dt, q, dim)
+    states, state_covs = project_states(x, p, dt, q, dim)
     for i in range(n):
         f = np.eye(2 * dim)
         f[:dim, dim:] = dt[i] * np.eye(dim)
@@ -34,6 +35,8 @@ def test_project_matches_transition_matrices(seed, dim, q):
         full = f @ p[i] @ f.T + qm
         np.testing.assert_allclose(pos[i], (f @ x[i])[:dim], rtol=1e-12, atol=1e-9)
         np.testing.assert_allclose(cov[i], full[:dim, :dim], rtol=1e-10, atol=1e-9)
+        np.testing.assert_allclose(states[i], f @ x[i], rtol=1e-12, atol=1e-9)
+        np.testing.assert_allclose(state_covs[i], full, rtol=1e-10, atol=1e-9)
 
 
 @settings(max_examples=30, deadline=None)
