@@ -49,6 +49,7 @@ the integral of every pair that cannot reach previouslyUnseen.
 from __future__ import annotations
 
 import math
+import weakref
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -124,6 +125,16 @@ def _default_gater() -> Gater:
     from tracker.gating import gate
 
     return gate
+
+
+_RMAX_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _log_rmax(prior: TerrainPrior) -> float:
+    """ln max r (per m²) plus the terrace slack, once per prior object (experiments build many trackers)."""
+    if prior not in _RMAX_CACHE:
+        _RMAX_CACHE[prior] = math.log(float(np.max(prior.density))) + _RMAX_SLACK
+    return _RMAX_CACHE[prior]
 
 
 def _log(x: np.ndarray) -> np.ndarray:
@@ -236,7 +247,7 @@ class Tracker:
         self.integrator = _one_thread_when_small(integrator or _default_integrator(), 1)
         xmin, ymin, xmax, ymax = prior.grid.bounds
         self.log_u = -math.log((xmax - xmin) * (ymax - ymin))
-        self.log_rmax = math.log(float(np.max(prior.density))) + _RMAX_SLACK
+        self.log_rmax = _log_rmax(prior)
         self.hypotheses_ = Hypotheses(self.motion.state_dim)
         self.n_reports_ = 0
         self._last_time = -np.inf
@@ -286,6 +297,8 @@ class Tracker:
         unchanged when it raises.
         """
         z, V, t = self._check(reports)
+        if not z.shape[0]:
+            return np.zeros(0, dtype=np.int64)
         log_unseen, on = self._log_unseen(z, V)
         if not on.all():
             off = np.flatnonzero(~on)

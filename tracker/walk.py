@@ -294,7 +294,7 @@ def _decide_now(j, nc, blk, pool, hyp, istate, fstate, cfg):
     c_score = np.empty(total)
     c_mean = np.empty((total, D))
     c_cov = np.empty((total, D, D))
-    c_logc = np.full(total, blk[3][j])  # ln u: the uniform normaliser
+    c_logc = np.full(total, blk[3][j])  # UU/UT: ln u; TT fresh candidates here are never chosen
     pm = np.empty(2)
     pc = np.empty((2, 2))
     c = 0
@@ -305,6 +305,7 @@ def _decide_now(j, nc, blk, pool, hyp, istate, fstate, cfg):
             c_score[c] = p_score[p]
             c_mean[c] = p_mean[p]
             c_cov[c] = p_cov[p]
+            c_logc[c] = p_logc[p]
             c += 1
         p = p_next[p]
     terrain, log_rmax, s_kind, s_param = cfg[1], cfg[2], cfg[3], cfg[4]

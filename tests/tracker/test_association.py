@@ -352,3 +352,25 @@ if __name__ == "__main__":
     GOLDEN.parent.mkdir(exist_ok=True)
     GOLDEN.write_text(json.dumps({f"{s}/{v}/{t}": _golden_run(s, v, t) for s, v, t in GOLDEN_CASES}) + "\n")
     print(f"wrote {GOLDEN}")
+
+
+def test_empty_update_changes_nothing(prior):
+    tr = Tracker(prior, "TT", tau=0.0)
+    empty = Reports.create(np.zeros((0, 2)), np.zeros((0, 2, 2)))
+    assert tr.update(empty).shape == (0,)
+    assert tr.n_detected_ == 0 and tr.n_reports_ == 0
+    assert associate(prior, empty, "UT", tau=0.0).estimate.means.shape == (0, 2)
+
+
+def test_stale_report_fused_keeps_its_normaliser(prior):
+    # Two targets 300 m apart (inside each other's wide gate, far in score): the second block's report of A
+    # sees B just changed, rescores it inside numba, and must fuse into A with A's new normaliser.
+    a, b = np.array([7000.0, 7000.0]), np.array([7300.0, 7000.0])
+    z = np.array([a, b, b + [5.0, -3.0], a + [-4.0, 6.0]])
+    covs = np.tile(np.diag([900.0, 900.0]), (4, 1, 1))
+    reports = Reports.create(z, covs)
+    want, hyp = reference(prior, reports, "TT", ExpS(-1.0))
+    tr = Tracker(prior, "TT", tau=-1.0, gamma=80.0)
+    got = np.concatenate([tr.update(reports.subset(slice(0, 2))), tr.update(reports.subset(slice(2, 4)))])
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_allclose(tr.hypotheses_.log_c, np.array([h[2] for h in hyp]), rtol=1e-12)
