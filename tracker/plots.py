@@ -109,16 +109,20 @@ def table_markdown(table: Mapping[str, Mapping[str, float | None]], paper: bool 
     return "\n".join(lines)
 
 
+def _titled(title: str, what: str) -> str:
+    return f"{title}: {what}" if title else what
+
+
 def write_figures(results: pd.DataFrame, out_dir: Path, prefix: str = "", title: str = "") -> list[Path]:
     """All figures for one experiment into ``out_dir`` (PNG); returns their paths."""
     out_dir = Path(out_dir)
     variants = [v for v in ("UU", "UT", "TT") if v in set(results["variant"])]
-    paths = [score_figure(results, v, out_dir / f"{prefix}score_{v}.png", f"{title} average scores, {v}".strip())
+    paths = [score_figure(results, v, out_dir / f"{prefix}score_{v}.png", _titled(title, f"average scores, {v}"))
              for v in variants]
     groups = [g for g in (["UU", "UT"], ["TT"]) if set(g) & set(variants)]
     for g in groups:
         present = [v for v in g if v in variants]
         paths.append(nd_error_figure(results, present, out_dir / f"{prefix}nd_error_{'_'.join(present)}.png",
-                                     f"{title} |N̂_D − N_D|, {' and '.join(present)}".strip()))
+                                     _titled(title, f"|N̂_D − N_D|, {' and '.join(present)}")))
     paths.append(overview_figure(results, variants, out_dir / f"{prefix}overview.png", title))
     return paths
