@@ -17,7 +17,7 @@ from sklearn.base import clone
 
 from pipeline.atomic import atomic_paths
 from pipeline.build import build_features
-from pipeline.evaluate import CVResult, block_cv, default_bandwidths, hybrid_bandwidths
+from pipeline.evaluate import CVResult, block_cv, default_bandwidths
 from pipeline.kde import block_ids, fit_kde_cv
 from pipeline.learn import SPATIAL, PriorEstimator
 from pipeline.learn_config import LearnConfig, load_learn_config
@@ -160,7 +160,7 @@ def learn_region(
         used = pts[est.used_mask_]
         bws = np.asarray(lc.bandwidths_m) if lc.bandwidths_m else default_bandwidths(stack)
         bw = fit_kde_cv(used, block_ids(used, config.grid.bounds[:2], lc.block_size_m), bws).bandwidth
-        hyb = clone(est).set_params(spatial_bandwidth=hybrid_bandwidths(bw), spatial_block=lc.block_size_m,
+        hyb = clone(est).set_params(spatial_bandwidth=float(bw), spatial_block=lc.block_size_m,
                                     spatial_folds=lc.folds).fit(stack, pts)
     result = None
     if cv:

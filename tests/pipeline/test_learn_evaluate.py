@@ -60,10 +60,10 @@ def test_kde_baseline_picks_a_candidate_and_scores_as_a_gaussian_mixture() -> No
 def test_block_cv_scores_models_on_the_same_held_out_blocks() -> None:
     stack = small_stack(60, 80)
     xs, ys = stack.grid.cell_centres()
-    # a broad spatial effect (sd 400 m, blocks of 300 m): what a KDE of other blocks can predict
-    bump = np.exp(-((xs - xs.mean() + 300) ** 2 + (ys - ys.mean() - 200) ** 2) / (2 * 400.0**2))
+    # a spatial cluster (sd 250 m, blocks of 300 m) the terrain lacks, which other blocks' points predict
+    bump = np.exp(-((xs - xs.mean() + 300) ** 2 + (ys - ys.mean() - 200) ** 2) / (2 * 250.0**2))
     rng = np.random.default_rng(3)
-    pts = sample_points(TRUE_MODEL.evaluate(stack) * (0.1 + 4 * bump), stack.grid, 1500, rng)
+    pts = sample_points(TRUE_MODEL.evaluate(stack) * (0.05 + 8 * bump), stack.grid, 1500, rng)
     rows, cols = np.nonzero(stack["water"].values == 1)
     wet = np.column_stack(stack.grid.transform @ (cols[:3] + 0.5, rows[:3] + 0.5))
     with pytest.warns(UserWarning, match="3 on structural zeros"):
