@@ -38,9 +38,9 @@ def test_tiled_learning_pass_equals_single_process(tmp_path):
         stack = build_features(config, progress=False)
     ref_terms, _ = make_terms(stack, config.model, tuple(config.model.terms), None, None, 8)
     client = shared_client()
-    terms = tiled_terms(config, config.model, client, tile=120, progress=False)
+    terms = tiled_terms(config, config.model, client, tile=150, progress=False)
     assert terms == ref_terms  # codes, labels, zeros and the distance's fine-bin range
-    got = tiled_cell_stats(config, terms, client, tile=120, progress=False)
+    got = tiled_cell_stats(config, terms, client, tile=150, progress=False)
     assert_stats_equal(got, cell_stats(stack, tuple(ref_terms)))
     assert got.total_area == pytest.approx(config.grid.height * config.grid.width * config.grid.cell_area, rel=0, abs=0)
 
