@@ -60,7 +60,8 @@ def plot_fit(est: PriorEstimator, path: str | Path, n_distance_bins: int = 30) -
             p = est.likelihoods_[t.feature]
             fine = np.asarray(e["bin_lo"]) + e["bin_width"] / 2
             scale = (area @ road_likelihood(fine, p["rmd"], p["mv"])) / area.sum()
-            dd = np.linspace(0, fine.max(), 400)
+            # dense near the road, where the form peaks at rmd, sparse far out
+            dd = np.unique(np.concatenate([np.linspace(0, min(fine.max(), 10 * p["rmd"]), 300), np.geomspace(1, fine.max(), 300)]))
             ax.plot(dd, road_likelihood(dd, p["rmd"], p["mv"]) / scale, color="#1f78b4",
                     label=f"fitted rmd={p['rmd']:.0f} m, mv={p['mv']:.2f}")
             ax.plot(d, ratio, "o", ms=3, color="#d95f02", label="points / area (equal-area bins)")
