@@ -36,6 +36,7 @@ from pathlib import Path
 import numba as nb
 import numpy as np
 import rasterio
+import rasterio.errors
 import rasterio.shutil
 from distributed import Client, as_completed
 from rasterio.windows import Window
@@ -166,7 +167,13 @@ def _windowed_layer(spec: LayerSpec, grid: Grid, folder: Path) -> LayerSpec:
     :func:`pipeline.layers.read_raster` reads that part only, with its own transform and no data."""
     from rasterio.warp import transform_bounds
 
-    with rasterio.open(spec.path) as src:
+    try:
+        src = rasterio.open(spec.path)
+    except rasterio.errors.RasterioIOError:
+        return spec  # read_raster reports the missing or unreadable file, naming the layer
+    with src:
+        if src.crs is None or not 1 <= spec.band <= src.count:
+            return spec  # likewise: read_raster's own messages
         bounds = grid.bounds if src.crs == grid.crs else transform_bounds(grid.crs, src.crs, *grid.bounds, densify_pts=21)
         win = src.window(*bounds)
         margin = 3  # source cells: bilinear reads 2 x 2, and the window edge rounds outward

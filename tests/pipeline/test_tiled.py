@@ -11,11 +11,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rasterio
+from affine import Affine
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pipeline.build import build_features, build_region_prior
 from pipeline.config import load_config
+from pipeline.layers import LayerError
 from pipeline.likelihood import LikelihoodModel
 from pipeline.prior import PriorError, TerrainPrior, sat_paths
 from pipeline.tiled import (
@@ -28,7 +30,7 @@ from pipeline.tiled import (
     tile_windows,
 )
 from tests.dask_helpers import shared_client
-from tests.pipeline.gis_helpers import REGION_TOML, write_config
+from tests.pipeline.gis_helpers import REGION_TOML, write_config, write_raster
 
 SUB_BOUNDS = [301000, 6188000, 307000, 6194000]  # 6 km x 6 km of the bundled region: 300 x 300 cells of 20 m
 
@@ -167,3 +169,17 @@ def test_zero_prior_fails_and_writes_nothing(tmp_path, client):
         build_prior_tiled(load_config(cfg), out, client=client, tile=150, progress=False)
     assert not out.exists() and not any(p.exists() for p in sat_paths(out))
     assert list(out.parent.iterdir()) == []
+
+
+@pytest.mark.parametrize("problem", ["missing", "no_crs"])
+def test_bad_dem_fails_per_tile_as_in_memory(tmp_path, problem):
+    """A tile reports a bad raster layer with read_raster's own error, naming the file and layer."""
+    doc = tomllib.loads(region(tmp_path).read_text())
+    dem = tmp_path / "dem.tif"
+    if problem == "no_crs":
+        write_raster(dem, np.zeros((50, 50), dtype=np.float32), Affine(100.0, 0, 300000, 0, -100.0, 6200000), None)
+    doc["layers"]["dem"]["path"] = str(dem)
+    config = load_config(write_config(tmp_path / "bad.toml", doc))
+    specs = needed_features(config, ["slope_class"])
+    with pytest.raises(LayerError, match=r"dem.tif.*\[layers.dem\].*(not found|no CRS)"):
+        tile_features(config, specs, {}, tile_windows(config.grid, 100)[0])
