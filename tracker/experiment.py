@@ -87,9 +87,19 @@ class ExperimentConfig:
         return [self.base_seed + i for i in range(self.n_datasets)]
 
 
-@lru_cache(maxsize=4)
 def _load_prior(prior_path: str) -> TerrainPrior:
-    # One read per worker process; the summed-area tables are memory-mapped.
+    """The prior, read once per process and file version (a rebuilt file at the same path is re-read)."""
+    try:
+        st = os.stat(prior_path)
+    except FileNotFoundError:
+        return TerrainPrior.read(prior_path)  # raises the PriorError naming the missing file
+    return _read_prior(prior_path, st.st_ino, st.st_mtime_ns, st.st_size)
+
+
+@lru_cache(maxsize=4)
+def _read_prior(prior_path: str, inode: int, mtime_ns: int, size: int) -> TerrainPrior:
+    # The summed-area tables are memory-mapped; inode, mtime and size only key the cache (an atomic
+    # rewrite replaces the inode).
     return TerrainPrior.read(prior_path)
 
 

@@ -157,3 +157,21 @@ def test_cli_experiment(prior_path: str, tmp_path, capsys) -> None:
     assert "missing.tif" in capsys.readouterr().err
     assert main(["experiment", "--prior", prior_path, "--tau", "3:-3:1", "--out", str(out)]) == 1
     assert "--tau" in capsys.readouterr().err
+
+
+def test_rebuilt_prior_at_the_same_path_is_reread(tmp_path) -> None:
+    from pipeline.prior import PriorError
+    from tracker.experiment import _load_prior
+
+    grid = Grid("EPSG:32734", Affine(20.0, 0.0, 300000.0, 0.0, -20.0, 6200000.0), 50, 50)
+    path = tmp_path / "prior.tif"
+    TerrainPrior.uniform(grid).write(path)
+    first = _load_prior(str(path)).density.copy()
+    r = np.ones((50, 50))
+    r[:, :25] = 3.0
+    TerrainPrior.from_array(r, grid).write(path)
+    again = _load_prior(str(path)).density
+    np.testing.assert_allclose(first, 1.0 / (1000.0 * 1000.0), rtol=1e-6)
+    np.testing.assert_allclose(again[0, 0] / again[0, -1], 3.0, rtol=1e-6)
+    with pytest.raises(PriorError, match="missing.tif"):
+        _load_prior(str(tmp_path / "missing.tif"))
