@@ -374,3 +374,16 @@ def test_stale_report_fused_keeps_its_normaliser(prior):
     got = np.concatenate([tr.update(reports.subset(slice(0, 2))), tr.update(reports.subset(slice(2, 4)))])
     np.testing.assert_array_equal(got, want)
     np.testing.assert_allclose(tr.hypotheses_.log_c, np.array([h[2] for h in hyp]), rtol=1e-12)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("variant", ["UU", "TT"])
+def test_blocks_equal_one_at_a_time_at_scale(variant):
+    # Thousands of reports in crowded blocks: every refresh, in-kernel rescoring and low-c check runs.
+    prior = cos_prior()
+    reports, _ = scenario(17, n_targets=800, n_reports=4000, size_m=14000.0, spread=(10.0, 120.0))
+    one = Tracker(prior, variant, tau=-1.0, block=1)
+    want = np.concatenate([one.update(reports.subset(slice(i, i + 1))) for i in range(len(reports))])
+    got = associate(prior, reports, variant, tau=-1.0, block=1024)
+    np.testing.assert_array_equal(got.assignments, want)
+    np.testing.assert_allclose(got.hypotheses.log_c, one.hypotheses_.log_c, rtol=1e-12)
