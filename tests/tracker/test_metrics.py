@@ -208,3 +208,25 @@ def test_score_is_a_metric_on_mixtures(seed: int, uniform_middle: bool) -> None:
     ab, bc, ac = d(a, True, b, not uniform_middle), d(b, not uniform_middle, c, True), d(a, True, c, True)
     assert ac <= ab + bc + 1e-9 * ac
     assert d(b, not uniform_middle, a, True) == pytest.approx(ab, rel=1e-9)
+
+
+def test_posterior_means_match_dense_integration() -> None:
+    """Stein's-identity means against Σ x·G·r / Σ G·r on a 2 m lattice."""
+    from tracker.metrics import posterior_means
+
+    prior = _score_prior()
+    rng = np.random.default_rng(25)
+    means, covs = _gaussians(rng, 5)
+    got = posterior_means(prior, means, covs)
+    xmin, ymin, xmax, ymax = prior.grid.bounds
+    xs, ys = np.meshgrid(np.arange(xmin + 1, xmax, 2.0), np.arange(ymin + 1, ymax, 2.0))
+    pts = np.column_stack([xs.ravel(), ys.ravel()])
+    r = prior.density_at(pts[:, 0], pts[:, 1])
+    shifts = []
+    for a, A, m in zip(means, covs, got, strict=True):
+        d = pts - a
+        w = np.exp(-0.5 * np.einsum("ni,ij,nj->n", d, np.linalg.inv(A), d)) * r
+        expected = (pts * w[:, None]).sum(axis=0) / w.sum()
+        np.testing.assert_allclose(m, expected, atol=1.0)  # metres
+        shifts.append(np.abs(expected - a).max())
+    assert max(shifts) > 10.0  # the prior moves some means by tens of metres (river band, ridge)
