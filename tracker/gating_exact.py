@@ -146,7 +146,14 @@ def bad_covariances(c, sym_rtol):
                 for s in range(r + 1, dim):
                     if abs(c[i, r, s] - c[i, s, r]) > sym_rtol * scale:
                         ok = False
-        if ok:
+        if ok and dim <= 3:  # leading minors in closed form
+            v02 = c[i, 0, 2] if dim == 3 else 0.0
+            v12 = c[i, 1, 2] if dim == 3 else 0.0
+            v22 = c[i, 2, 2] if dim == 3 else 0.0
+            d2, _ = sym_d2_logdet(c[i, 0, 0], c[i, 0, 1], v02, c[i, 1, 1], v12, v22,
+                                  0.0, 0.0, 0.0, dim)
+            ok = np.isfinite(d2)
+        elif ok:
             ok = _cholesky_ok(c[i], work)
         bad[i] = not ok
     return bad
