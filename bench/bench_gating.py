@@ -108,16 +108,18 @@ def reference_ball_tree_pairs(tm, tc, rm, rc, gamma=GAMMA):
     return _finish(tm, tc, rm, rc, *_lists_to_pairs(lists), gamma)
 
 
-def numpy_brute(tm, tc, rm, rc, gamma=GAMMA, chunk=256):
-    """Every pair, vectorised numpy, in chunks of tracks."""
+def numpy_brute(tm, tc, rm, rc, gamma=GAMMA, chunk=32):
+    """Every pair, vectorised numpy on covariance components, in cache-sized chunks of tracks."""
+    r00, r01, r11 = rc[:, 0, 0], rc[:, 0, 1], rc[:, 1, 1]
     out_i, out_j = [], []
     for s in range(0, len(tm), chunk):
         t = slice(s, s + chunk)
-        v = tc[t, None] + rc[None]
-        dx = rm[None] - tm[t, None]
-        det = v[..., 0, 0] * v[..., 1, 1] - v[..., 0, 1] ** 2
-        d2 = (v[..., 1, 1] * dx[..., 0] ** 2 - 2 * v[..., 0, 1] * dx[..., 0] * dx[..., 1]
-              + v[..., 0, 0] * dx[..., 1] ** 2) / det
+        v00 = tc[t, 0, 0, None] + r00
+        v01 = tc[t, 0, 1, None] + r01
+        v11 = tc[t, 1, 1, None] + r11
+        dx = rm[:, 0] - tm[t, 0, None]
+        dy = rm[:, 1] - tm[t, 1, None]
+        d2 = (v11 * dx * dx - 2 * v01 * dx * dy + v00 * dy * dy) / (v00 * v11 - v01 * v01)
         i, j = np.nonzero(d2 <= gamma)
         out_i.append(i + s)
         out_j.append(j)
