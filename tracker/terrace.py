@@ -217,6 +217,8 @@ def _ellipse_sum(sat, uc, vc, su, slope, half, extent, other, transposed, rho, n
     clipped = t_lo > -1.0 or t_hi < 1.0
     th_b = np.arcsin(t_lo)
     th_step = (np.arcsin(t_hi) - th_b) / ns
+    sin_step = np.sin(th_step)  # edges by rotation: no trigonometry per strip
+    cos_step = np.cos(th_step)
     tb = t_lo
     cb = np.sqrt(1.0 - t_lo * t_lo)
     total = 0.0
@@ -225,8 +227,8 @@ def _ellipse_sum(sat, uc, vc, su, slope, half, extent, other, transposed, rho, n
             # Spread the strips over the part of the ellipse between the grid's u edges.
             th_a, ta, ca = th_b, tb, cb
             th_b = th_a + th_step
-            tb = np.sin(th_b)
-            cb = np.cos(th_b)
+            tb = min(ta * cos_step + ca * sin_step, 1.0)
+            cb = max(ca * cos_step - ta * sin_step, 0.0)
             area = th_b + tb * cb - th_a - ta * ca  # twice the piece's area in the unit disc
             if not (area > 0.0 and tb > ta):
                 continue
