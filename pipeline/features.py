@@ -12,6 +12,9 @@ from pipeline.grid import Grid
 NODATA_CODE = -1
 """Code of a categorical cell with no data (continuous features use NaN)."""
 
+_DENSE_CODE_RANGE = 1 << 20
+"""Code ranges narrower than this are handled with dense look-up tables instead of sorting."""
+
 
 @dataclass(frozen=True)
 class Feature:
@@ -41,8 +44,16 @@ class Feature:
         return self.labels.get(int(code), str(int(code)))
 
     def codes(self) -> np.ndarray:
-        """Category codes present (excluding no data)."""
-        present = np.unique(self.values)
+        """Category codes present (excluding no data), ascending."""
+        if self.values.size == 0:
+            return np.empty(0, dtype=self.values.dtype)
+        lo, hi = int(self.values.min()), int(self.values.max())
+        if hi - lo < _DENSE_CODE_RANGE:
+            # A count over the code range is linear time; np.unique sorts all cells.
+            counts = np.bincount((self.values.ravel() - lo).astype(np.intp), minlength=hi - lo + 1)
+            present = np.flatnonzero(counts) + lo
+        else:
+            present = np.unique(self.values)
         return present[present != NODATA_CODE]
 
 

@@ -29,7 +29,7 @@ import numpy as np
 import tomli_w
 
 from pipeline.atomic import atomic_paths
-from pipeline.features import NODATA_CODE, Feature, FeatureStack
+from pipeline.features import _DENSE_CODE_RANGE, NODATA_CODE, Feature, FeatureStack
 
 
 class LikelihoodError(ValueError):
@@ -54,8 +54,7 @@ class CategoricalLikelihood:
         if feature.kind != "categorical":
             raise LikelihoodError(f"feature {feature.name!r} is {feature.kind}, a categorical table needs categories")
         codes = feature.codes()
-        lut_codes = np.append(codes, NODATA_CODE)
-        lut_vals = np.empty(lut_codes.shape[0], dtype=np.float64)
+        values = np.empty(codes.shape[0], dtype=np.float64)
         for k, code in enumerate(codes):
             label = feature.label(code)
             value = self.values.get(label, self.values.get(str(int(code))))
@@ -64,11 +63,18 @@ class CategoricalLikelihood:
                     f"feature {feature.name!r}: category {label!r} (code {int(code)}) has no likelihood; "
                     f"table has {sorted(self.values)}"
                 )
-            lut_vals[k] = value
-        lut_vals[-1] = self.nodata
+            values[k] = value
+        lo = min(NODATA_CODE, int(codes[0])) if codes.size else NODATA_CODE
+        hi = int(codes[-1]) if codes.size else NODATA_CODE
+        if hi - lo < _DENSE_CODE_RANGE:
+            # Dense look-up by code offset: one gather instead of a search per cell.
+            lut = np.full(hi - lo + 1, self.nodata)
+            lut[codes - lo] = values
+            return lut[feature.values - lo]
+        lut_codes = np.append(codes, NODATA_CODE)
+        lut_vals = np.append(values, self.nodata)
         order = np.argsort(lut_codes)
-        idx = np.searchsorted(lut_codes[order], feature.values)
-        return lut_vals[order][idx]
+        return lut_vals[order][np.searchsorted(lut_codes[order], feature.values)]
 
     def to_dict(self) -> dict:
         return {"type": "categorical", "values": dict(self.values), "nodata": self.nodata}
