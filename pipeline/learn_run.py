@@ -41,12 +41,14 @@ class LearnReport:
         """Fitted likelihoods with 95% intervals beside the naive fit, then the CV scores."""
         est, nv = self.estimator, self.naive
         lines = [f"{'feature':<16}{'level':<12}{'ML':>10}  {'95% CI':<22}{'naive':>10}"]
-        for t in est.terms_:
+        for t, p in zip(est.terms_, est.params_, strict=True):
             f = t.feature
             if t.form in DISCRETE_FORMS:
                 for k, lv in enumerate(t.levels):
                     v, nvv = est.likelihoods_[f][lv], nv.likelihoods_[f][lv]
-                    if k in t.zeros:
+                    if not p.has_area[k]:
+                        lines.append(f"{f:<16}{lv:<12}{v:>10.4g}  {'no area: not fitted':<22}{nvv:>10.4g}")
+                    elif k in t.zeros:
                         note = "structural zero" if v == 0 else f"softened zero {v:g}"
                         lines.append(f"{f:<16}{lv:<12}{v:>10.4g}  {note:<22}{nvv:>10.4g}")
                     elif k == t.reference:

@@ -41,6 +41,7 @@ class TermParams:
     bounds: list[tuple[float | None, float | None]]
     bin_value: np.ndarray | None = None  # continuous: area-weighted mean value per fine bin (cells)
     alpha: float = 0.01  # KDE term: fixed share of the uniform density mixed into the KDE
+    has_area: np.ndarray | None = None  # discrete: levels with area on the grid
 
     @property
     def size(self) -> int:
@@ -121,7 +122,7 @@ def term_params(
         )
         x0 = np.asarray(start.get("logr", np.zeros(n)), dtype=np.float64)[free]
         x0 = np.where(np.isfinite(x0), x0, 0.0)
-        return TermParams(term, free, fixed, x0, [(None, None)] * len(free))
+        return TermParams(term, free, fixed, x0, [(None, None)] * len(free), has_area=np.asarray(level_area) > 0)
     if term.form == "road":
         rmd = float(start.get("rmd", 100.0))
         mv = float(np.clip(start.get("mv", 0.5), MV_MIN, 1.0))
@@ -207,15 +208,15 @@ class Objective:
             val += 0.5 * float(th @ th) / self.penalty_sd**2
             grad[sl] += th / self.penalty_sd**2
             if p.term.form == "binned" and self.smooth_sd > 0:
+                # differences between consecutive bins that have area and are not structural
+                # zeros: an empty bin (fixed, unidentified) must not pull its neighbours to 1
                 lut = p.lut(th)[:-1]
-                ok = np.isfinite(lut)
-                lv = np.where(ok, lut, 0.0)
-                pair = ok[:-1] & ok[1:]
-                diff = np.where(pair, np.diff(lv), 0.0)
+                used = np.flatnonzero(np.isfinite(lut) & p.has_area)
+                diff = np.diff(lut[used])
                 val += 0.5 * float(diff @ diff) / self.smooth_sd**2
                 g_lut = np.zeros(lut.shape[0])
-                g_lut[:-1] -= diff / self.smooth_sd**2
-                g_lut[1:] += diff / self.smooth_sd**2
+                np.add.at(g_lut, used[:-1], -diff / self.smooth_sd**2)
+                np.add.at(g_lut, used[1:], diff / self.smooth_sd**2)
                 grad[sl] += g_lut[p.free]
         return val, grad
 

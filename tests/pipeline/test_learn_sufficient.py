@@ -93,12 +93,22 @@ def test_gradient_matches_finite_differences() -> None:
     rng = np.random.default_rng(4)
     pts = sample_points(TRUE_MODEL.evaluate(stack), stack.grid, 300, rng)
     template = LikelihoodModel({**TRUE_MODEL.terms, "land": CategoricalLikelihood({"grass": 1.0, "bush": 0.7, "rock": 0.3})})
-    _, obj = objective_for(stack, template, pts, {"road_distance": [0.0, 40.0, 100.0, 300.0]})
+    # the bin [10, 20) m is empty on a 20 m grid (distances 0, 20, 28.3, ...): fixed, unidentified
+    est, obj = objective_for(stack, template, pts, {"road_distance": [0.0, 10.0, 20.0, 100.0, 300.0]})
     obj.penalty_sd, obj.smooth_sd = 1.5, 0.7  # exercise both penalty gradients
     x = obj.x0 + rng.normal(scale=0.2, size=obj.x0.shape)
     g = obj(x)[1]
     fd = approx_fprime(x, lambda z: obj(z)[0], 1e-7)
     np.testing.assert_allclose(g, fd, rtol=1e-4, atol=1e-6)
+    # penalty oracle by hand: ridge on free values, smoothness over consecutive bins that have area
+    k = [t.feature for t in est.terms_].index("road_distance")
+    p = est.params_[k]
+    assert p.has_area.tolist() == [True, False, True, True, True]
+    road = obj.split(x)[obj.active.index(k)]
+    lut = p.lut(road)[:-1]
+    steps = np.diff(lut[[0, 2, 3, 4]])
+    ridge = sum(float(th @ th) for th in obj.split(x)) / 1.5**2
+    assert obj.penalty(x)[0] == pytest.approx(0.5 * ridge + 0.5 * float(steps @ steps) / 0.7**2, rel=1e-12)
 
 
 def test_road_gradient_matches_finite_differences() -> None:
