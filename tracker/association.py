@@ -30,9 +30,9 @@ with each of those LOW_C's own c_q and exact d² holds too, no hypothesis outsid
 chosen nor beat previouslyUnseen: the gated decision equals the ungated one. (One bad normaliser
 would otherwise loosen the bound for every report.) This is checked for every report; when it fails, that report is re-gated by brute
 force with the γ that makes the inequality hold, so decisions never depend on γ (γ only trades
-speed). r_max carries a factor 2 of slack for the terrace rule's error. With constant velocity the
-same bound is used with the normalisers at the hypotheses' last update (the predicted normaliser
-c'_q is not bounded), so there it is a strong heuristic rather than a proof.
+speed). r_max carries a factor 2 of slack for the terrace rule's error. TT with constant velocity is
+the exception: the predicted normaliser c'_q has no lower bound, so there the gate is the plain χ²
+gate at γ (the gate probability) and no widening is attempted. UU/UT with motion keep the proof.
 
 Streaming with sequential semantics, fast (kernels in :mod:`tracker.walk`). Reports are taken in
 blocks: a block is gated against the hypotheses at its start (one ``gate`` call) and every gated pair

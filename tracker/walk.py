@@ -212,7 +212,9 @@ def decide(j, cand, nc, c_h, c_score, c_mean, c_cov, c_logc, check_gate, blk, hy
             best = c_score[p]
             arg = p
     unseen = log_unseen[j] + log_s_ratio_code(s_kind, s_param, n, istate[2] + 1)
-    if check_gate and n > 0:
+    # TT with motion: the predicted normalisers c'_q are not bounded, so the bound proves nothing
+    # there and the gate is the plain χ² gate (no widening).
+    if check_gate and n > 0 and not (terrain_ratio and motion == MOTION_CV):
         # Out of the gate, score_q < -d²/2 - ln(2π√det V) + (ln r_max - ln c_q for TT): bound it with
         # d² > γ and ln c_q >= fstate[0] for most hypotheses, exactly for the listed low-c ones.
         base = -_LOG_2PI - half_logdet_v[j]
