@@ -58,6 +58,8 @@ STRIP_ROWS = 256
 """Rows per strip in pass 2 (one GeoTIFF block row)."""
 ROAD_TAIL = 1e-12
 """Derived distance caps put the road term within this relative distance of its floor mv."""
+GDAL_CACHE_BYTES = 256 << 20
+"""GDAL block cache during pass 2 (bytes)."""
 _SUM_LEAF = 1 << 22
 """Elements per leaf of the pairwise global sum read from the scratch file (32 MiB of float64)."""
 
@@ -427,7 +429,8 @@ def build_prior_tiled(
                 raise PriorError(
                     "the likelihood table makes r zero everywhere on the grid; check for structural zeros covering the region"
                 )
-            with atomic_paths(*sat_paths(out), out) as (t_sat, t_sat2, t_tif):
+            # GDAL's block cache defaults to 5% of RAM; pass 2 streams, so a small cache keeps the client small.
+            with atomic_paths(*sat_paths(out), out) as (t_sat, t_sat2, t_tif), rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_BYTES):
                 _write_prior(r_store, total_r, config.grid, t_sat, t_sat2, t_tif, description, scratch, progress)
     finally:
         if own_client:
