@@ -45,7 +45,7 @@ from tracker.reports import check_gaussians
 
 N_TERRACES = 24
 """Default number of terraces (ellipses), from the accuracy study in docs/terrace.md."""
-N_STRIPS = 16
+N_STRIPS = 32
 """Default (minimum) number of vertical strips per ellipse."""
 SHEAR = 16.0
 """Default strips per unit of shear κ (see :func:`n_strips_for`)."""
