@@ -93,7 +93,8 @@ def build_grid(pos: np.ndarray, members: np.ndarray, bucket: np.ndarray, n_bucke
         members_all[seg[b]:seg[b + 1]] = members[idx[o]]
         table_seg.append(table_seg[-1] + tables[-1].size)
     return Grid(origin, cells, dims, seg, keys_all, members_all, dense,
-                np.asarray(table_seg, dtype=np.int64), np.concatenate(tables))
+                np.asarray(table_seg, dtype=np.int64),
+                tables[0] if len(tables) == 1 else np.concatenate(tables))
 
 
 def take_rows(a: np.ndarray, rows: np.ndarray) -> np.ndarray:
