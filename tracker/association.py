@@ -78,6 +78,8 @@ GATE_PROB = 1.0 - 1e-9
 DEFAULT_GAMMA = -2.0 * math.log(1.0 - GATE_PROB)
 BLOCK = 2048
 """Reports per block: larger blocks amortise gating, smaller ones conflict less."""
+MASS_FLOOR = 1e-10
+"""Prior mass near a report (∫G(z,V) r · 2π√det V) below which it is off the prior (rounding floor)."""
 LOW_C = 256
 """Hypotheses of least normaliser that the gate bound checks one by one (the rest share a floor)."""
 _RMAX_SLACK = math.log(2.0)
@@ -286,7 +288,9 @@ class Tracker:
             return np.full(z.shape[0], self.log_u), np.ones(z.shape[0], bool)
         log_iz = _log(self.integrator(self.prior, z, V))
         self.stats_["integrals"] += z.shape[0]
-        on = np.isfinite(log_iz)
+        # ∫G r · 2π√det V is the prior mass near the report, G-weighted; the summed-area tables leave
+        # ~1e-13 of rounding where the true value is 0, so below MASS_FLOOR it counts as no mass.
+        on = log_iz + _LOG_2PI + 0.5 * np.linalg.slogdet(V)[1] > math.log(MASS_FLOOR)
         return (log_iz if self.terrain_association else np.full(z.shape[0], self.log_u)), on
 
     def update(self, reports: Reports) -> np.ndarray:
