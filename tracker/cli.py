@@ -59,8 +59,16 @@ def cmd_experiment(args: argparse.Namespace) -> None:
         sensor=AirborneSensor(azimuth_std_rad=args.azimuth_std_mrad / 1000.0, range_std_m=args.range_std_m),
         poisson_mu=args.poisson_mu,
     )
-    summary, paths = run_and_write(args.prior, args.out, config, workers=args.workers, progress=not args.quiet,
-                                   title=args.title or "")
+    if args.scheduler:
+        from pipeline.scheduler import get_client  # dask loads only for cluster runs
+        from tracker.sweep import run_and_write_dask
+
+        with get_client(args.scheduler) as client:
+            summary, paths = run_and_write_dask(args.prior, args.out, config, client, progress=not args.quiet,
+                                                title=args.title or "")
+    else:
+        summary, paths = run_and_write(args.prior, args.out, config, workers=args.workers, progress=not args.quiet,
+                                       title=args.title or "")
     for v, d in summary["variants"].items():
         print(f"{v}: best tau {d['best_tau']:+.2f}, mean score x10^4.5 {d['best_mean_score_x10^4.5']:.2f}, "
               f"|N_D^ - N_D| {d['mean_nd_abs_error_at_best_tau']:.2f}"
@@ -83,6 +91,7 @@ def add_experiment_parser(sub) -> None:
     p.add_argument("--azimuth-std-mrad", type=float, default=2.0, help="sensor azimuth standard deviation, mrad")
     p.add_argument("--range-std-m", type=float, default=12.0, help="sensor slant-range standard deviation, m")
     p.add_argument("--workers", type=int, help="local worker processes (default: all cores; 1 runs inline)")
+    p.add_argument("--scheduler", metavar="ADDRESS", help="Dask scheduler to spread the data sets over, e.g. tcp://10.0.0.5:8786 (instead of --workers)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--title", help="figure title prefix (default: the prior's file name)")
     p.add_argument("--out", type=Path, required=True, help="output folder (results, summary.json, table1.md, PNGs)")
