@@ -38,6 +38,7 @@ from pipeline.sufficient import (
     CONTINUOUS_FORMS,
     DISCRETE_FORMS,
     NODATA_INDEX,
+    CellStats,
     PointStats,
     Term,
     cell_stats,
@@ -52,9 +53,26 @@ SPATIAL_BIN = 0.05
 Z95 = 1.959963984540054
 
 
-def _template_value(table: CategoricalLikelihood, feature: Feature, code: int) -> float | None:
-    v = table.values.get(feature.label(code), table.values.get(str(int(code))))
-    return None if v is None else float(v)
+def _template_values(term: Term, table, flexible: dict) -> list[float | None]:
+    """The template's likelihood per level of a discrete term (None where it gives none)."""
+    if term.form == "categorical" and table is not None:
+        vals = [table.values.get(lv, table.values.get(str(int(c)))) for lv, c in zip(term.levels, term.codes, strict=True)]
+        return [None if v is None else float(v) for v in vals]
+    if term.form == "binned" and isinstance(table, BinnedLikelihood) and term.feature not in flexible:
+        return [float(v) for v in table.values]
+    return [None] * term.n_levels
+
+
+def template_start(term: Term, template: LikelihoodModel | None, flexible: dict | None = None) -> tuple[Term, dict]:
+    """``term`` with the template's structural zeros (values 0), and its start values for the fit."""
+    table = template.terms.get(term.feature) if template else None
+    if term.form in DISCRETE_FORMS:
+        vals = _template_values(term, table, flexible or {})
+        zeros = frozenset(k for k, v in enumerate(vals) if v == 0)
+        return dataclasses.replace(term, zeros=zeros), {"logr": np.array([np.log(v) if v else 0.0 for v in vals])}
+    if isinstance(table, RoadDistanceLikelihood):
+        return term, {"rmd": table.rmd, "mv": table.mv}
+    return term, {}
 
 
 def make_terms(
@@ -73,7 +91,7 @@ def make_terms(
     """
     names = list(features or (template.terms if template else [f.name for f in stack]))
     flexible = flexible or {}
-    terms, starts = [], []
+    terms = []
     for name in names:
         f = stack[name]
         table = template.terms.get(name) if template else None
@@ -82,31 +100,22 @@ def make_terms(
             if table is not None and not isinstance(table, CategoricalLikelihood):
                 raise ValueError(f"feature {name!r} is categorical but its template table is {type(table).__name__}")
             codes = tuple(int(c) for c in f.codes())
-            vals = [(_template_value(table, f, c) if table else None) for c in codes]
-            zeros = frozenset(k for k, v in enumerate(vals) if v == 0)
-            logr = np.array([np.log(v) if v else 0.0 for v in vals])
-            terms.append(Term(name, "categorical", tuple(f.label(c) for c in codes), codes, zeros=zeros, nodata=nodata))
-            starts.append({"logr": logr})
-            continue
-        if name in flexible or isinstance(table, BinnedLikelihood) or (table is None and f.units != "m"):
+            terms.append(Term(name, "categorical", tuple(f.label(c) for c in codes), codes, nodata=nodata))
+        elif name in flexible or isinstance(table, BinnedLikelihood) or (table is None and f.units != "m"):
             if name in flexible:
-                edges, vals = list(flexible[name]), [None] * len(flexible[name])
+                edges = list(flexible[name])
             elif isinstance(table, BinnedLikelihood):
-                edges, vals = list(table.edges), list(table.values)
+                edges = list(table.edges)
             else:
                 finite = f.values[np.isfinite(f.values)]
                 edges = list(np.unique(np.quantile(finite, np.linspace(0, 1, n_bins + 1)[:-1])))
-                vals = [None] * len(edges)
             levels = tuple(f"{e:g}" for e in edges)
-            zeros = frozenset(k for k, v in enumerate(vals) if v == 0)
-            logr = np.array([np.log(v) if v else 0.0 for v in vals])
-            terms.append(Term(name, "binned", levels, edges=tuple(float(e) for e in edges), zeros=zeros, nodata=nodata))
-            starts.append({"logr": logr})
-            continue
-        width = bin_width or stack.grid.dx / 4.0
-        term = with_range(Term(name, "road", bin_width=width, nodata=nodata), f.values)
-        terms.append(term)
-        starts.append({"rmd": table.rmd, "mv": table.mv} if isinstance(table, RoadDistanceLikelihood) else {})
+            terms.append(Term(name, "binned", levels, edges=tuple(float(e) for e in edges), nodata=nodata))
+        else:
+            width = bin_width or stack.grid.dx / 4.0
+            terms.append(with_range(Term(name, "road", bin_width=width, nodata=nodata), f.values))
+    pairs = [template_start(t, template, flexible) for t in terms]
+    terms, starts = [p[0] for p in pairs], [p[1] for p in pairs]
     return terms, starts
 
 
@@ -191,7 +200,7 @@ class PriorEstimator(BaseEstimator):
         t0, c0 = time.perf_counter(), time.process_time()
         pts = np.asarray(points, dtype=np.float64)
         self.spatial_bandwidth_ = float(self.spatial_bandwidth) if self.spatial_bandwidth else None
-        terms, starts = make_terms(features, self.template, self.features, self.flexible, self.bin_width, self.n_bins)
+        terms, _ = make_terms(features, self.template, self.features, self.flexible, self.bin_width, self.n_bins)
         stack = features
         loo = None
         if self.spatial_bandwidth_:
@@ -205,14 +214,43 @@ class PriorEstimator(BaseEstimator):
             stack = FeatureStack(features.grid, dict(features.features))
             stack.add(Feature(SPATIAL, logk, "continuous", "log(KDE over uniform)"))
             terms.append(with_range(Term(SPATIAL, "kde", bin_width=SPATIAL_BIN), logk))
-            starts.append({"alpha": self.spatial_floor})
         cells = cell_stats(stack, tuple(terms))
-        t_pass, c_pass = time.perf_counter() - t0, time.process_time() - c0
-        terms = [_with_reference(t, cells.level_area(k)) for k, t in enumerate(terms)]
-        cells = dataclasses.replace(cells, terms=tuple(terms))
+        pass_times = (time.perf_counter() - t0, time.process_time() - c0)
         pstats = point_stats(stack, tuple(terms), pts)
         if loo is not None:
             pstats.value[:, -1] = loo
+        self.stack_ = stack
+        return self._fit_from_stats(cells, pstats, t0, c0, pass_times)
+
+    def fit_stats(self, cells: CellStats, points: PointStats) -> PriorEstimator:
+        """Fit from precomputed statistics: ``cells`` (e.g. from
+        :func:`pipeline.tiled_learn.tiled_cell_stats`, so no process holds the grid) and the points'
+        levels and values on the same terms (e.g. :func:`pipeline.learn_tiled.tiled_point_stats`).
+
+        The same fit as :meth:`fit` on the grid those statistics came from (the terms carry the
+        template's zeros; start values come from ``template``). Without the grid there is no
+        ``prior_`` (so no :meth:`score` / :meth:`log_density`) and no hybrid spatial term.
+        """
+        self._check_params()
+        if self.spatial_bandwidth is not None:
+            raise ValueError("fit_stats: the hybrid spatial term needs the grid (spatial_bandwidth must be None)")
+        if tuple(points.terms) != tuple(cells.terms):
+            raise ValueError(f"fit_stats: point statistics are on terms {[t.feature for t in points.terms]}, "
+                             f"cell statistics on {[t.feature for t in cells.terms]}; they must be the same terms")
+        t0, c0 = time.perf_counter(), time.process_time()
+        self.spatial_bandwidth_ = None
+        self.stack_ = None
+        return self._fit_from_stats(cells, points, t0, c0, (0.0, 0.0))
+
+    def _fit_from_stats(self, cells: CellStats, pstats: PointStats, t0: float, c0: float,
+                        pass_times: tuple[float, float]) -> PriorEstimator:
+        """The fit proper, shared by :meth:`fit` and :meth:`fit_stats`: reference levels, parameters,
+        the optimisation and every fitted attribute."""
+        terms = [_with_reference(t, cells.level_area(k)) for k, t in enumerate(cells.terms)]
+        cells = dataclasses.replace(cells, terms=tuple(terms))
+        pstats = dataclasses.replace(pstats, terms=tuple(terms))
+        starts = [{"alpha": self.spatial_floor} if t.form == "kde" else template_start(t, self.template, self.flexible)[1]
+                  for t in terms]
         soften = self.soften if self.on_zero == "soften" else None
         params = [
             term_params(t, cells.level_area(k), soften, _shift(starts[k], t), cells.bin_value(k) if t.form in CONTINUOUS_FORMS else None)
@@ -227,7 +265,7 @@ class PriorEstimator(BaseEstimator):
         x = np.concatenate([r.x for r in results])
         cov = _block_diag([r.cov for r in results])
         full = Objective(cells, used, params, list(range(len(terms))), self.penalty_sd, self.smooth_sd)
-        self.stack_ = stack
+        n_points = len(keep)
         self.terms_ = terms
         self.params_ = params
         self.theta_ = x
@@ -235,7 +273,7 @@ class PriorEstimator(BaseEstimator):
         self.cell_stats_ = cells
         self.point_stats_ = used
         self.used_mask_ = keep
-        self.n_points_ = len(pts)
+        self.n_points_ = n_points
         self.n_used_ = int(keep.sum())
         self.n_off_grid_ = counts["off_grid"]
         self.n_on_zero_ = counts["on_zero"]
@@ -244,18 +282,17 @@ class PriorEstimator(BaseEstimator):
         self.penalty_ = full.penalty(x)[0]
         self.fit_results_ = results
         self.fit_seconds_ = time.perf_counter() - t0
-        self.pass_seconds_ = t_pass
+        self.pass_seconds_, self.pass_cpu_seconds_ = pass_times
         self.fit_cpu_seconds_ = time.process_time() - c0
-        self.pass_cpu_seconds_ = c_pass
         self._describe(full)
         self.bandwidth_loglik_ = {self.spatial_bandwidth_: self.loglik_} if self.spatial_bandwidth_ else {}
         self.__dict__.pop("prior_", None)
         if counts["off_grid"] or counts["on_zero"]:
             warnings.warn(
-                f"PriorEstimator.fit: {counts['off_grid']} of {len(pts)} points off the grid (dropped), "
+                f"PriorEstimator.fit: {counts['off_grid']} of {n_points} points off the grid (dropped), "
                 f"{counts['on_zero']} on structural zeros {counts['detail']} "
                 f"({'dropped' if soften is None else f'zeros softened to {soften}'})",
-                stacklevel=2,
+                stacklevel=3,
             )
         return self
 
@@ -330,6 +367,9 @@ class PriorEstimator(BaseEstimator):
     @cached_property
     def prior_(self) -> TerrainPrior:
         """The fitted prior (density per m²) on the training grid, built on first use."""
+        if self.stack_ is None:
+            raise ValueError("prior_: this estimator was fitted from statistics (fit_stats), without the grid; "
+                             "build the prior with `terrain-prior build --model` (tiled for large grids)")
         r = self.model_.evaluate(self.stack_)
         if self.spatial_bandwidth_:
             p = self.likelihoods_[SPATIAL]
@@ -430,4 +470,4 @@ def _block_diag(blocks: list[np.ndarray]) -> np.ndarray:
     return out
 
 
-__all__ = ["PriorEstimator", "make_terms", "SPATIAL"]
+__all__ = ["PriorEstimator", "make_terms", "template_start", "SPATIAL"]
