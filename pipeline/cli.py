@@ -90,7 +90,8 @@ def cmd_learn(args: argparse.Namespace) -> None:
     from pipeline.learn_run import learn_region  # scikit-learn and the fit load only for `learn`
 
     report = learn_region(args.region, args.targets, args.out, args.layer, args.x, args.y, args.targets_crs,
-                          cv=not args.no_cv, hybrid_prior=args.hybrid_prior, progress=not args.quiet)
+                          cv=not args.no_cv, hybrid_prior=args.hybrid_prior, progress=not args.quiet,
+                          tiled=args.tiled, scheduler=args.scheduler, tile=args.tile)
     print(report.table())
     print("wrote " + ", ".join(str(p) for p in report.paths.values()))
 
@@ -106,6 +107,10 @@ def add_learn_parser(sub) -> None:
     p.add_argument("--out", type=Path, required=True, help="fitted likelihood tables (TOML); diagnostics and plot beside it")
     p.add_argument("--no-cv", action="store_true", help="skip the spatial block cross-validation")
     p.add_argument("--hybrid-prior", type=Path, help="also write the hybrid (terrain + KDE) prior GeoTIFF here")
+    p.add_argument("--tiled", action="store_true",
+                   help="compute the fit's statistics tile by tile on Dask (grids larger than memory); implies --no-cv, no hybrid")
+    p.add_argument("--scheduler", metavar="ADDRESS", help="Dask scheduler for --tiled, e.g. tcp://10.0.0.5:8786 (implies --tiled)")
+    p.add_argument("--tile", type=int, default=1024, help="tile edge in cells for --tiled (default 1024)")
     p.set_defaults(func=cmd_learn)
 
 

@@ -240,7 +240,7 @@ class PriorEstimator(BaseEstimator):
         t0, c0 = time.perf_counter(), time.process_time()
         self.spatial_bandwidth_ = None
         self.stack_ = None
-        return self._fit_from_stats(cells, points, t0, c0, (0.0, 0.0))
+        return self._fit_from_stats(cells, points, t0, c0, (np.nan, np.nan))  # the pass ran elsewhere
 
     def _fit_from_stats(self, cells: CellStats, pstats: PointStats, t0: float, c0: float,
                         pass_times: tuple[float, float]) -> PriorEstimator:

@@ -8,6 +8,7 @@ scores) and ``<stem>.fit.png`` (fitted likelihoods against empirical ratios).
 from __future__ import annotations
 
 import json
+import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,6 +25,8 @@ from pipeline.learn_config import LearnConfig, load_learn_config
 from pipeline.plots_learn import plot_fit
 from pipeline.sufficient import DISCRETE_FORMS
 from pipeline.targets import read_targets
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -144,18 +147,32 @@ def learn_region(
     cv: bool = True,
     hybrid_prior: str | Path | None = None,
     progress: bool = True,
+    tiled: bool = False,
+    scheduler: str | None = None,
+    tile: int = 1024,
 ) -> LearnReport:
     """Fit, evaluate and write (see the module doc). ``hybrid_prior``: also write the hybrid
-    prior GeoTIFF there (the spatial term cannot be expressed as a likelihood table)."""
+    prior GeoTIFF there (the spatial term cannot be expressed as a likelihood table).
+
+    ``tiled`` (implied by ``scheduler``, a Dask scheduler address): the statistics are computed tile
+    by tile (``tile`` cells a side) on Dask, so the grid is never held whole; the ML and naive fits
+    are the same, but the cross-validation and the hybrid, which need the whole grid, are skipped.
+    """
     config, lc = load_learn_config(region)
     if config.model is None and lc.features is None:
         raise ValueError(f"{config.path}: no [likelihood.*] template and no learn.features; nothing says what to fit")
-    stack = build_features(config, progress)
+    tiled = tiled or scheduler is not None
+    if tiled and hybrid_prior is not None:
+        raise ValueError("--hybrid-prior needs the whole grid (the KDE term); it cannot be used with --tiled / --scheduler")
     pts = read_targets(targets, config.grid, layer, x, y, targets_crs)
     est = PriorEstimator(
         template=config.model, features=lc.features, penalty_sd=lc.penalty_sd, smooth_sd=lc.smooth_sd,
         on_zero=lc.on_zero, soften=lc.soften, flexible=lc.flexible or None, bin_width=lc.bin_width,
-    ).fit(stack, pts)
+    )
+    if tiled:
+        return _learn_tiled(config, lc, est, pts, targets, out, scheduler, tile, cv, progress)
+    stack = build_features(config, progress)
+    est.fit(stack, pts)
     naive = clone(est).set_params(method="naive").fit(stack, pts)
     hyb = None
     if lc.hybrid:
@@ -169,17 +186,43 @@ def learn_region(
         models = ("uniform", "naive", "terrain", "kde", "hybrid") if lc.hybrid else ("uniform", "naive", "terrain", "kde")
         result = block_cv(stack, pts, est, lc.folds, lc.block_size_m,
                           np.asarray(lc.bandwidths_m) if lc.bandwidths_m else None, models, progress)
+    report = _write(LearnReport(est, naive, hyb, result, _paths(out), lc), targets)
+    if hybrid_prior is not None and hyb is not None:
+        report.paths["hybrid_prior"] = hyb.prior_.write(hybrid_prior)
+    return report
+
+
+def _paths(out: str | Path) -> dict[str, Path]:
     out = Path(out)
-    paths = {"model": out, "diagnostics": out.with_suffix(".diagnostics.json"), "plot": out.with_suffix(".fit.png")}
-    report = LearnReport(est, naive, hyb, result, paths, lc)
-    if result is not None:
-        g = result.summary()["gain_nats"]
+    return {"model": out, "diagnostics": out.with_suffix(".diagnostics.json"), "plot": out.with_suffix(".fit.png")}
+
+
+def _write(report: LearnReport, targets: str | Path) -> LearnReport:
+    """The model TOML, diagnostics JSON and fit plot of a finished report."""
+    est, paths = report.estimator, report.paths
+    if report.cv is not None:
+        g = report.cv.summary()["gain_nats"]
         est.model_.meta["learned"]["cv_gain_nats_over_uniform"] = {m: round(v["pooled"], 6) for m, v in g.items()}
     est.model_.meta["learned"]["targets"] = str(Path(targets).resolve())
-    est.model_.write_toml(out)
+    est.model_.write_toml(paths["model"])
     with atomic_paths(paths["diagnostics"]) as (tmp,):
         tmp.write_text(json.dumps(diagnostics(report), indent=1, allow_nan=False))
     plot_fit(est, paths["plot"])
-    if hybrid_prior is not None and hyb is not None:
-        paths["hybrid_prior"] = hyb.prior_.write(hybrid_prior)
     return report
+
+
+def _learn_tiled(config, lc: LearnConfig, est: PriorEstimator, pts: np.ndarray, targets, out, scheduler: str | None,
+                 tile: int, cv: bool, progress: bool) -> LearnReport:
+    """The tiled path of :func:`learn_region`: statistics per tile on Dask, then the same fits."""
+    from pipeline.learn_tiled import tiled_stats  # dask loads only for tiled learning
+    from pipeline.scheduler import get_client
+
+    skipped = [what for what, on in (("the spatial block cross-validation", cv), ("the hybrid fit", lc.hybrid)) if on]
+    if skipped:
+        log.info("tiled learning: skipping %s (they need the whole grid)", " and ".join(skipped))
+    with get_client(scheduler) as client:
+        cells, points = tiled_stats(config, est, pts, client, tile, progress)
+    est.fit_stats(cells, points)
+    naive = clone(est).set_params(method="naive").fit_stats(cells, points)
+    est.model_.meta["learned"]["tiled"] = {"tile_cells": tile, "scheduler": scheduler or "local"}
+    return _write(LearnReport(est, naive, None, None, _paths(out), lc), targets)

@@ -203,14 +203,20 @@ def cell_stats(stack: FeatureStack, terms: tuple[Term, ...], rows_per_chunk: int
     return CellStats(terms, index, value, n * stack.grid.cell_area, stack.grid.cell_area, h * w)
 
 
-def point_stats(stack: FeatureStack, terms: tuple[Term, ...], points: np.ndarray) -> PointStats:
-    """Level index and exact value per term of points (N, 2) in metres in the grid's CRS."""
+def check_points(points: np.ndarray) -> np.ndarray:
+    """Points as a float (N, 2) array of x, y metres; ValueError naming bad shapes or indices."""
     pts = np.asarray(points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 2:
         raise ValueError(f"points must be an (N, 2) array of x, y metres, got shape {pts.shape}")
     if not np.all(np.isfinite(pts)):
         bad = np.flatnonzero(~np.isfinite(pts).all(axis=1))
         raise ValueError(f"points have non-finite coordinates at indices {bad[:10].tolist()}")
+    return pts
+
+
+def point_stats(stack: FeatureStack, terms: tuple[Term, ...], points: np.ndarray) -> PointStats:
+    """Level index and exact value per term of points (N, 2) in metres in the grid's CRS."""
+    pts = check_points(points)
     u, v = stack.grid.to_pixel(pts[:, 0], pts[:, 1])
     inside = (u >= 0) & (u < stack.grid.width) & (v >= 0) & (v < stack.grid.height)
     sampled = stack.sample(pts[:, 0], pts[:, 1])
