@@ -80,15 +80,18 @@ def gaussian_product(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """G(y; a, A)·G(y; z, V) = G(z; a, A+V)·G(y; b, B), batched over the leading axis.
 
-    Returns (b, B, log G(z; a, A+V)) with B = (A⁻¹+V⁻¹)⁻¹ and b = B(A⁻¹a + V⁻¹z), computed in the
-    stable form B = A - A(A+V)⁻¹A, b = a + A(A+V)⁻¹(z-a).
+    Returns (b, B, log G(z; a, A+V)) with B = (A⁻¹+V⁻¹)⁻¹ = A(A+V)⁻¹V and
+    b = B(A⁻¹a + V⁻¹z) = V(A+V)⁻¹a + A(A+V)⁻¹z, written as sums whose terms swap when (a, A) and
+    (z, V) swap, so the product is bitwise symmetric in its two factors (scores that cancel
+    identical components rely on it). No inverse of A or V is needed, so either may be near-singular.
     """
     S = A + V
     S_inv = np.linalg.inv(S)
-    K = A @ S_inv
+    AS = A @ S_inv
+    VS = V @ S_inv
     r = z - a
-    b = a + np.einsum("nij,nj->ni", K, r)
-    B = A - K @ A
+    b = np.einsum("nij,nj->ni", VS, a) + np.einsum("nij,nj->ni", AS, z)
+    B = 0.5 * (AS @ V + VS @ A)
     B = 0.5 * (B + B.transpose(0, 2, 1))
     d = a.shape[1]
     maha = np.einsum("ni,nij,nj->n", r, S_inv, r)
