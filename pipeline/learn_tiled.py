@@ -43,6 +43,8 @@ def tiled_point_stats(
     that hold points, on ``client`` (default: an in-process cluster). Off-grid points get no data."""
     terms = tuple(terms)
     pts = check_points(points)
+    if tile < 1:
+        raise ValueError(f"tile must be >= 1 cell, got {tile}")
     grid = config.grid
     u, v = grid.to_pixel(pts[:, 0], pts[:, 1])
     inside = (u >= 0) & (u < grid.width) & (v >= 0) & (v < grid.height)
