@@ -24,7 +24,13 @@ prior: setup
 	$(VENV)/bin/terrain-prior build terrain_data/region.toml --out $(OUT)/prior.tif
 	$(VENV)/bin/terrain-prior show $(OUT)/prior.tif --png $(OUT)/prior.png --features-png $(OUT)/features.png
 
+# The main job: the prior and its maps, one simulated data set tracked with TT and drawn, and the
+# paper's experiment (28 data sets x 100 reports, UU/UT/TT over a tau grid) with its figures.
 demo: prior
+	$(VENV)/bin/terrain-track simulate --prior $(OUT)/prior.tif --seed 0 --out $(OUT)/reports.csv --truth-out $(OUT)/targets.csv
+	$(VENV)/bin/terrain-track run --prior $(OUT)/prior.tif --reports $(OUT)/reports.csv --variant TT --tau -4.75 --out $(OUT)/tracks.gpkg
+	$(VENV)/bin/terrain-track show --prior $(OUT)/prior.tif --reports $(OUT)/reports.csv --tracks $(OUT)/tracks.gpkg --truth $(OUT)/targets.csv --png $(OUT)/tracks.png
+	$(VENV)/bin/terrain-track experiment --prior $(OUT)/prior.tif --datasets 28 --reports 100 --tau -9:3:0.25 --out $(OUT)/experiment
 
 test: setup
 	$(PY) -m pytest -q

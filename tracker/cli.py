@@ -98,11 +98,69 @@ def add_experiment_parser(sub) -> None:
     p.set_defaults(func=cmd_experiment)
 
 
+def cmd_simulate(args: argparse.Namespace) -> None:
+    import numpy as np
+    import pandas as pd
+
+    from pipeline.atomic import atomic_paths
+    from pipeline.prior import TerrainPrior
+    from tracker.io import write_reports
+    from tracker.simulate import simulate
+
+    scenario = simulate(TerrainPrior.read(args.prior), args.seed, args.targets, args.reports)
+    write_reports(args.out, scenario.reports)
+    msg = f"{len(scenario.reports)} reports of {scenario.n_detected} of {len(scenario.targets)} targets; wrote {args.out}"
+    if args.truth_out:
+        table = pd.DataFrame({"truth": np.arange(len(scenario.targets)), "x": scenario.targets[:, 0], "y": scenario.targets[:, 1]})
+        with atomic_paths(args.truth_out) as (tmp,):
+            table.to_csv(tmp, index=False, float_format="%.17g")
+        msg += f" and {args.truth_out}"
+    print(msg)
+
+
+def add_simulate_parser(sub) -> None:
+    p = sub.add_parser("simulate", help="simulate one data set of the paper's experiment (targets from the prior, airborne sensor)")
+    p.add_argument("--prior", type=Path, required=True, help="prior GeoTIFF (terrain-prior build)")
+    p.add_argument("--seed", type=int, default=0, help="random seed")
+    p.add_argument("--targets", type=int, default=200, help="targets drawn over the central 14 km (kept: the central half)")
+    p.add_argument("--reports", type=int, default=100, help="reports, targets picked with replacement")
+    p.add_argument("--truth-out", type=Path, help="also write the kept true targets as CSV (truth, x, y)")
+    p.add_argument("--out", type=Path, required=True, help="reports CSV to write")
+    p.set_defaults(func=cmd_simulate)
+
+
+def cmd_show(args: argparse.Namespace) -> None:
+    import pandas as pd
+
+    from pipeline.prior import TerrainPrior
+    from tracker.io import read_reports, read_tracks
+    from tracker.plots import tracks_figure
+
+    prior = TerrainPrior.read(args.prior)
+    reports, _ = read_reports(args.reports)
+    means, covs, _ = read_tracks(args.tracks)
+    targets = pd.read_csv(args.truth)[["x", "y"]].to_numpy() if args.truth else None
+    tracks_figure(prior, reports.means, reports.covs, means, covs, args.png, targets=targets)
+    print(f"wrote {args.png}")
+
+
+def add_show_parser(sub) -> None:
+    p = sub.add_parser("show", help="draw reports and estimated targets over the prior as a PNG map")
+    p.add_argument("--prior", type=Path, required=True, help="prior GeoTIFF")
+    p.add_argument("--reports", type=Path, required=True, help="reports CSV or GeoPackage")
+    p.add_argument("--tracks", type=Path, required=True, help="tracks GeoPackage (terrain-track run)")
+    p.add_argument("--truth", type=Path, help="true targets CSV (terrain-track simulate --truth-out)")
+    p.add_argument("--png", type=Path, required=True, help="PNG to write")
+    p.set_defaults(func=cmd_show)
+
+
 def make_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="terrain-track", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
     add_run_parser(sub)
     add_experiment_parser(sub)
+    add_simulate_parser(sub)
+    add_show_parser(sub)
     return parser
 
 

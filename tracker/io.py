@@ -150,3 +150,36 @@ def track_files(
         with atomic_paths(assignments_csv) as (tmp,):
             pd.DataFrame({"report": np.arange(len(reports)), "hypothesis": result.assignments}).to_csv(tmp, index=False)
     return result
+
+
+def write_reports(path: str | Path, reports: Reports) -> Path:
+    """Write reports as CSV (the columns :func:`read_reports` reads, plus ``truth``), atomically."""
+    table = pd.DataFrame(
+        {
+            "x": reports.means[:, 0],
+            "y": reports.means[:, 1],
+            "time": reports.times,
+            "cov_xx": reports.covs[:, 0, 0],
+            "cov_xy": reports.covs[:, 0, 1],
+            "cov_yy": reports.covs[:, 1, 1],
+            "truth": reports.truth,
+        }
+    )
+    with atomic_paths(path) as (tmp,):
+        table.to_csv(tmp, index=False, float_format="%.17g")
+    return Path(path)
+
+
+def read_tracks(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Means (Q, 2), covariances (Q, 2, 2) and report counts (Q,) from a tracks GeoPackage."""
+    path = Path(path)
+    try:
+        meta, _, _, field_data = raw.read(path, layer="targets", read_geometry=False)
+    except (pyogrio.errors.DataSourceError, pyogrio.errors.DataLayerError) as exc:
+        raise ValueError(f"{path}: cannot read layer 'targets' of a tracks file ({exc})") from exc
+    table = dict(zip(meta["fields"], field_data, strict=True))
+    means = np.column_stack([table["x"], table["y"]]).astype(np.float64)
+    covs = np.empty((means.shape[0], 2, 2))
+    covs[:, 0, 0], covs[:, 0, 1] = table["cov_xx"], table["cov_xy"]
+    covs[:, 1, 0], covs[:, 1, 1] = table["cov_xy"], table["cov_yy"]
+    return means, covs, np.asarray(table["count"], dtype=np.int64)

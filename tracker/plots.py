@@ -13,6 +13,7 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from pipeline.atomic import atomic_paths  # noqa: E402
@@ -126,3 +127,44 @@ def write_figures(results: pd.DataFrame, out_dir: Path, prefix: str = "", title:
                                      _titled(title, f"|N̂_D − N_D|, {' and '.join(present)}")))
     paths.append(overview_figure(results, variants, out_dir / f"{prefix}overview.png", title))
     return paths
+
+
+def tracks_figure(
+    prior,
+    report_means,
+    report_covs,
+    track_means,
+    track_covs,
+    path: Path,
+    targets=None,
+    ellipse_prob: float = 0.95,
+    title: str = "",
+) -> Path:
+    """Map of the prior (square-root grey scale) with the reports' and the estimated targets'
+    ``ellipse_prob`` covariance ellipses (metres, the prior's CRS) and, for simulations, the true targets."""
+    from matplotlib.collections import PolyCollection
+
+    from tracker.io import ellipse_polygons
+
+    fig, ax = plt.subplots(figsize=(8, 7))
+    left, bottom, right, top = prior.grid.bounds
+    ax.imshow(prior.density**0.5, extent=(left, right, bottom, top), cmap="gray", origin="upper")
+    for means, covs, colour, label in (
+        (report_means, report_covs, "tab:orange", f"reports ({len(report_means)})"),
+        (track_means, track_covs, "tab:cyan", f"estimated targets ({len(track_means)})"),
+    ):
+        if len(means):
+            rings = [np.asarray(p.exterior.coords) for p in ellipse_polygons(means, covs, ellipse_prob)]
+            ax.add_collection(PolyCollection(rings, facecolors="none", edgecolors=colour, linewidths=0.8, label=label))
+    if targets is not None and len(targets):
+        ax.plot(targets[:, 0], targets[:, 1], "+", color="tab:red", ms=6, label=f"true targets ({len(targets)})")
+    pts = np.concatenate([np.reshape(report_means, (-1, 2)), np.reshape(track_means, (-1, 2))])
+    if len(pts):
+        pad = 300.0
+        ax.set_xlim(pts[:, 0].min() - pad, pts[:, 0].max() + pad)
+        ax.set_ylim(pts[:, 1].min() - pad, pts[:, 1].max() + pad)
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title(title or f"reports and estimated targets ({ellipse_prob:.0%} ellipses)")
+    ax.legend(loc="upper right", fontsize=8)
+    return _save(fig, Path(path))
