@@ -33,7 +33,6 @@ resolved relative to the config file. Example (``terrain_data/region.toml`` is a
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -44,7 +43,7 @@ from rasterio.crs import CRS
 
 from pipeline.grid import Grid, GridError
 from pipeline.lidar import SUFFIXES as POINTCLOUD_SUFFIXES
-from pipeline.likelihood import LikelihoodError, LikelihoodModel
+from pipeline.likelihood import LikelihoodError, LikelihoodModel, read_toml
 
 
 class ConfigError(ValueError):
@@ -370,10 +369,5 @@ def parse_config(d: dict, source: Path) -> RegionConfig:
 def load_config(path: str | Path) -> RegionConfig:
     """Read and validate a region config TOML file."""
     path = Path(path).resolve()
-    try:
-        d = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: region config not found") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    d = read_toml(path, "region config", ConfigError)
     return parse_config(d, path)

@@ -22,11 +22,11 @@ start values. The table is read here and removed before the region config is val
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from pipeline.config import ConfigError, RegionConfig, parse_config
+from pipeline.likelihood import read_toml
 
 _KEYS = {
     "features", "on_zero", "soften", "penalty_sd", "smooth_sd", "bin_width", "flexible",
@@ -113,12 +113,7 @@ def parse_learn(d: dict, source: Path) -> LearnConfig:
 def load_learn_config(path: str | Path) -> tuple[RegionConfig, LearnConfig]:
     """The region config and its ``[learn]`` table (defaults when absent)."""
     path = Path(path).resolve()
-    try:
-        d = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: region config not found") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    d = read_toml(path, "region config", ConfigError)
     learn = parse_learn(d.pop("learn", {}), path)
     region = parse_config(d, path)
     if learn.features:

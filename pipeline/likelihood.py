@@ -36,6 +36,17 @@ class LikelihoodError(ValueError):
     """A likelihood table that does not fit its feature or is malformed."""
 
 
+def read_toml(path: str | Path, what: str, error: type[ValueError]) -> dict:
+    """Parse a TOML file; a missing or malformed file raises ``error`` naming the path and ``what`` it is."""
+    path = Path(path)
+    try:
+        return tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise error(f"{path}: {what} not found") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise error(f"{path}: not valid TOML: {exc}") from None
+
+
 class Likelihood(Protocol):
     def __call__(self, feature: Feature) -> np.ndarray:
         """r_i(F_i(x)) on the feature's grid (float64, >= 0)."""
@@ -197,11 +208,4 @@ class LikelihoodModel:
 
     @classmethod
     def read_toml(cls, path: str | Path) -> LikelihoodModel:
-        path = Path(path)
-        try:
-            d = tomllib.loads(path.read_text())
-        except FileNotFoundError:
-            raise LikelihoodError(f"{path}: likelihood file not found") from None
-        except tomllib.TOMLDecodeError as exc:
-            raise LikelihoodError(f"{path}: not valid TOML: {exc}") from exc
-        return cls.from_dict(d, str(path))
+        return cls.from_dict(read_toml(path, "likelihood file", LikelihoodError), str(path))

@@ -66,17 +66,19 @@ def _rect_sums(sat, u0, u1, v0, v1, out):
 
 
 @nb.njit(cache=True)
-def _density_and_tables(r, total, cell_area, density, sat, sat2):
-    """density = r / total, and the padded tables of density*cell_area and density^2*cell_area, in one pass.
+def density_table_rows(r, total, cell_area, above, above2, density, sat, sat2):
+    """density = r / total for a band of rows, and the matching rows of the padded summed-area tables of
+    density*cell_area and density^2*cell_area (``sat``/``sat2`` are (rows, W+1), column 0 zero) under the
+    table rows ``above``/``above2`` (zeros for the first band).
 
-    Fused so a 10,000 x 10,000 grid is read once and written once per output, with no temporaries.
+    One fused pass, so a 10,000 x 10,000 grid is read once and written once per output with no
+    temporaries; the tiled build calls it band by band with the previous band's last rows, which gives
+    tables bit-identical to one call over the whole grid.
     """
     h, w = r.shape
-    sat[0, :] = 0.0
-    sat2[0, :] = 0.0
     for i in range(h):
-        sat[i + 1, 0] = 0.0
-        sat2[i + 1, 0] = 0.0
+        sat[i, 0] = 0.0
+        sat2[i, 0] = 0.0
         row = 0.0
         row2 = 0.0
         for j in range(w):
@@ -84,16 +86,12 @@ def _density_and_tables(r, total, cell_area, density, sat, sat2):
             density[i, j] = d
             row += d * cell_area
             row2 += d * d * cell_area
-            sat[i + 1, j + 1] = sat[i, j + 1] + row
-            sat2[i + 1, j + 1] = sat2[i, j + 1] + row2
-
-
-def summed_area_table(cell_values: np.ndarray) -> np.ndarray:
-    """Padded (H+1, W+1) float64 summed-area table of a (H, W) array."""
-    sat = np.zeros((cell_values.shape[0] + 1, cell_values.shape[1] + 1), dtype=np.float64)
-    np.cumsum(cell_values, axis=0, dtype=np.float64, out=sat[1:, 1:])
-    np.cumsum(sat[1:, 1:], axis=1, out=sat[1:, 1:])
-    return sat
+            if i == 0:
+                sat[i, j + 1] = above[j + 1] + row
+                sat2[i, j + 1] = above2[j + 1] + row2
+            else:
+                sat[i, j + 1] = sat[i - 1, j + 1] + row
+                sat2[i, j + 1] = sat2[i - 1, j + 1] + row2
 
 
 def sat_paths(path: str | Path) -> tuple[Path, Path]:
@@ -149,7 +147,9 @@ class TerrainPrior:
         density = np.empty(grid.shape, dtype=np.float64)
         sat = np.empty((grid.height + 1, grid.width + 1), dtype=np.float64)
         sat2 = np.empty_like(sat)
-        _density_and_tables(np.ascontiguousarray(r), total, grid.cell_area, density, sat, sat2)
+        zeros = np.zeros(grid.width + 1)
+        sat[0], sat2[0] = zeros, zeros
+        density_table_rows(np.ascontiguousarray(r), total, grid.cell_area, zeros, zeros, density, sat[1:], sat2[1:])
         return cls(grid, density, sat, sat2, model)
 
     @classmethod

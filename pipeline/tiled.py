@@ -12,7 +12,7 @@ Pass 1 (parallel): each tile's unnormalised r (the likelihood product, in the sa
 Pass 2 (one process, row strips): the global sum of r, with numpy's own pairwise-summation tree
 (so it is bit-identical to ``r.sum()`` of the whole array), then the density strips into a tiled
 GeoTIFF and the summed-area tables into ``.sat.npy`` / ``.sat2.npy`` with a carried row (the same
-additions in the same order as :func:`pipeline.prior.summed_area_table`), then a compressed
+additions as :func:`pipeline.prior.density_table_rows` over the whole grid), then a compressed
 Cloud-Optimized GeoTIFF with overviews. Memory: a few tiles per worker plus a few strips.
 
 Equality with the in-memory build on the same grid: bit-identical when every distance feature has
@@ -33,7 +33,6 @@ import time
 import warnings
 from pathlib import Path
 
-import numba as nb
 import numpy as np
 import rasterio
 import rasterio.errors
@@ -49,7 +48,7 @@ from pipeline.features import FeatureStack
 from pipeline.grid import Grid
 from pipeline.layers import LayerWarning
 from pipeline.likelihood import BinnedLikelihood, LikelihoodModel, RoadDistanceLikelihood
-from pipeline.prior import PriorError, sat_paths
+from pipeline.prior import PriorError, density_table_rows, sat_paths
 from pipeline.scheduler import get_client
 
 DEFAULT_TILE = 1024
@@ -320,33 +319,6 @@ def _timed_r_tile(*args) -> dict:
 
 
 # ------------------------------------------------------------------------------------ pass 2
-@nb.njit(cache=True)
-def _strip_tables(r, total, cell_area, above, above2, density, sat, sat2):
-    """Rows of a taller grid: density = r / total and the table rows of density*cell_area and
-    density^2*cell_area (each (rows, W+1), column 0 zero) under the table rows ``above``/``above2``.
-
-    The arithmetic, term by term, of :func:`pipeline.prior.TerrainPrior.from_array`'s fused pass
-    (running row sum, plus the table row above), so the tables come out bit-identical.
-    """
-    h, w = r.shape
-    for i in range(h):
-        sat[i, 0] = 0.0
-        sat2[i, 0] = 0.0
-        row = 0.0
-        row2 = 0.0
-        for j in range(w):
-            d = r[i, j] / total
-            density[i, j] = d
-            row += d * cell_area
-            row2 += d * d * cell_area
-            if i == 0:
-                sat[i, j + 1] = above[j + 1] + row
-                sat2[i, j + 1] = above2[j + 1] + row2
-            else:
-                sat[i, j + 1] = sat[i - 1, j + 1] + row
-                sat2[i, j + 1] = sat2[i - 1, j + 1] + row2
-
-
 def _write_prior(r_store: NpyRows, total_r: float, grid: Grid, t_sat: Path, t_sat2: Path, t_tif: Path,
                  description: dict, scratch: Path, progress: bool) -> None:
     """Density strips -> tiled GeoTIFF -> COG, and both summed-area tables, each strip under the
@@ -371,7 +343,7 @@ def _write_prior(r_store: NpyRows, total_r: float, grid: Grid, t_sat: Path, t_sa
             density = np.empty(mm.shape)
             block = np.empty((r1 - r0, w + 1))
             block2 = np.empty((r1 - r0, w + 1))
-            _strip_tables(np.asarray(mm), total, grid.cell_area, carry, carry2, density, block, block2)
+            density_table_rows(np.asarray(mm), total, grid.cell_area, carry, carry2, density, block, block2)
             del mm
             dst.write(density.astype(np.float32), 1, window=Window(0, r0, w, r1 - r0))
             sat.write(r0 + 1, 0, block)
