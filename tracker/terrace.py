@@ -197,6 +197,27 @@ def disc_band_area(ta, tb, a_lo, a_hi, b):
 
 
 @nb.njit(cache=True, inline="always")
+def _band_span(a_lo, a_hi, b):
+    """x-range of {x² + y² <= 1, a_lo + b x <= y <= a_hi + b x}: the part of the unit disc between
+    two parallel lines, as (lo, hi) with hi <= lo when it is empty.
+
+    The set is convex, so its extreme x are at the lines' crossings with the circle or at (±1, 0).
+    """
+    lo = np.inf
+    hi = -np.inf
+    for x in (-1.0, 1.0):
+        if a_lo + b * x <= 0.0 <= a_hi + b * x:
+            lo = min(lo, x)
+            hi = max(hi, x)
+    for a in (a_lo, a_hi):
+        r1, r2 = _line_roots(a, b, -1.0, 1.0)
+        if r2 > r1:
+            lo = min(lo, r1)
+            hi = max(hi, r2)
+    return lo, hi
+
+
+@nb.njit(cache=True, inline="always")
 def _ellipse_sum(sat, uc, vc, su, slope, half, extent, other, transposed, rho, ns, off, t, tbar, eta):
     """R(ρ): the table's sum over the ellipse of Mahalanobis radius ρ, as ``ns`` strip rectangles.
 
@@ -210,8 +231,12 @@ def _ellipse_sum(sat, uc, vc, su, slope, half, extent, other, transposed, rho, n
     width = rho * su
     shift = slope * width
     height = rho * half
-    t_lo = max(-uc / width, -1.0)
-    t_hi = min((extent - uc) / width, 1.0)
+    # Only the part of the ellipse over the grid gets strips: between the grid's u edges and
+    # within the u-range of its piece between the v edges (a thin cap of a large tilted ellipse
+    # across a v edge would otherwise fall into a few of the strips).
+    b_lo, b_hi = _band_span(-vc / height, (other - vc) / height, -shift / height)
+    t_lo = max(-uc / width, b_lo)
+    t_hi = min((extent - uc) / width, b_hi)
     if t_hi <= t_lo:
         return 0.0
     clipped = t_lo > -1.0 or t_hi < 1.0
