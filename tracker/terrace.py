@@ -222,9 +222,10 @@ def _ellipse_sum(sat, uc, vc, su, slope, half, extent, other, transposed, rho, n
     """R(ρ): the table's sum over the ellipse of Mahalanobis radius ρ, as ``ns`` strip rectangles.
 
     Strips run across u (columns, or rows when ``transposed``); the grid spans [0, ``extent``]
-    along u and [0, ``other``] along v. When the ellipse crosses the grid's u edges its strips are
-    spread over the part between them (so none is wasted off the grid and the edges are cut
-    exactly, areas and centroids in closed form). A strip crossing
+    along u and [0, ``other``] along v. When the ellipse reaches beyond the grid its strips are
+    spread over the u-range of its part on the grid (between the u edges, and within the u-range of
+    its piece between the v edges), so none is wasted off the grid and the u edges are cut
+    exactly, areas and centroids in closed form. A strip crossing
     a v edge gets the exact area of its piece inside the grid (:func:`disc_band_area`), as a
     rectangle against that edge.
     """
