@@ -34,10 +34,13 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+import pyogrio
+import pyogrio.errors
 import rasterio
 import rasterio.errors
 import rasterio.shutil
 from distributed import Client, as_completed
+from rasterio.crs import CRS
 from rasterio.windows import Window
 from tqdm import tqdm
 
@@ -205,6 +208,34 @@ def _windowed_layer(spec: LayerSpec, grid: Grid, folder: Path) -> LayerSpec:
     return dataclasses.replace(spec, path=path, band=1)
 
 
+def _filtered_vector_layer(spec: LayerSpec, bounds: tuple[float, float, float, float], crs, folder: Path) -> LayerSpec:
+    """An OGR VRT of a vector layer that yields only the features touching ``bounds`` (grid CRS,
+    metres), in source order, so a tile reads and burns its own roads instead of the whole layer.
+    Layers in another CRS (or with a restored index) are returned as they are: their box would
+    need reprojecting, and read_vector's own checks apply to the original file."""
+    if spec.restore_index or spec.path.suffix.lower() == ".vrt":
+        return spec
+    try:
+        info = pyogrio.read_info(spec.path, layer=spec.layer)
+    except (pyogrio.errors.DataSourceError, pyogrio.errors.DataLayerError):
+        return spec  # read_vector reports the missing or unreadable file or layer, naming it
+    if info["crs"] is None or not CRS.from_user_input(info["crs"]) == crs:
+        return spec
+    layer = spec.layer if spec.layer is not None else str(pyogrio.list_layers(spec.path)[0, 0])
+    x0, y0, x1, y1 = bounds
+    vrt = (
+        "<OGRVRTDataSource>"
+        f'<OGRVRTLayer name="{_xml_escape(layer)}">'
+        f'<SrcDataSource relativeToVRT="0">{_xml_escape(str(spec.path.resolve()))}</SrcDataSource>'
+        f"<SrcLayer>{_xml_escape(layer)}</SrcLayer>"
+        f'<SrcRegion clip="false">POLYGON(({x0!r} {y0!r},{x1!r} {y0!r},{x1!r} {y1!r},{x0!r} {y1!r},{x0!r} {y0!r}))</SrcRegion>'
+        "</OGRVRTLayer></OGRVRTDataSource>"
+    )
+    path = folder / f"{spec.name}.vrt"
+    path.write_text(vrt)
+    return dataclasses.replace(spec, path=path, layer=layer)
+
+
 def _xml_escape(s: str) -> str:
     return s.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;").replace('"', "&quot;")
 
@@ -222,11 +253,20 @@ def tile_features(config: RegionConfig, specs: dict[str, FeatureSpec], caps: dic
         }
         win = halo_window(core, *halo, grid)
         sub_grid = grid.window_grid(win.row_off, win.col_off, win.height, win.width)
+        # Vector features reach a tile's cells from at most margin_m + buffer_m (+ a cell for
+        # all_touched) outside it; categories read whole layers (their classes and checks are global).
+        reach = max((s.margin_m + s.buffer_m for s in group.values() if s.type in ("mask", "distance")), default=0.0)
+        reach += 2 * max(grid.dx, grid.dy)
+        x0, y0, x1, y1 = sub_grid.bounds
+        box = (x0 - reach, y0 - reach, x1 + reach, y1 + reach)
+        whole = {s.layer for s in specs.values() if s.type == "categories"}
         with tempfile.TemporaryDirectory(prefix="tile-vrt-") as tmp:
             layers = dict(config.layers)
             for name in {ly for s in group.values() for ly in s.layers}:
                 if layers[name].kind == "raster":
                     layers[name] = _windowed_layer(layers[name], sub_grid, Path(tmp))
+                elif layers[name].kind == "vector" and name not in whole:
+                    layers[name] = _filtered_vector_layer(layers[name], box, grid.crs, Path(tmp))
             sub = dataclasses.replace(config, grid=sub_grid, layers=layers, features=group)
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", LayerWarning)  # "no geometry touches the grid" is normal for a tile
