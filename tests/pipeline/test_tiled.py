@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import tempfile
 import tomllib
@@ -116,6 +117,24 @@ def test_tile_features_equal_whole_grid_features(tile, pick):
         for win in {windows[0], windows[-1], windows[pick % len(windows)]}:
             part = tile_features(config, specs, caps, win)
             for f in part:
+                ref = whole[f.name].values[win.row_off : win.row_off + win.height, win.col_off : win.col_off + win.width]
+                np.testing.assert_array_equal(f.values, ref, err_msg=f"{f.name} at {win}")
+
+
+def test_vector_reads_near_a_tile_reach_its_margin_and_buffer(tmp_path):
+    """Each tile reads only the vector features near it; roads that reach a tile through a wide
+    margin_m, a buffer_m or all_touched still count, so every tile equals the whole-grid features."""
+    doc = tomllib.loads(region(tmp_path).read_text())
+    doc["features"]["road_distance"].update(margin_m=400.0, buffer_m=35.0, all_touched=True)
+    doc["features"]["road_band"] = {"type": "mask", "layers": ["roads"], "buffer_m": 130.0, "all_touched": True}
+    config = load_config(write_config(tmp_path / "reach.toml", doc))
+    specs = needed_features(config, ["road_distance", "road_band", "water", "surface"])
+    caps = distance_caps(config, config.model, specs)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        whole = build_features(dataclasses.replace(config, features=specs), progress=False)
+        for win in tile_windows(config.grid, 37):
+            for f in tile_features(config, specs, caps, win):
                 ref = whole[f.name].values[win.row_off : win.row_off + win.height, win.col_off : win.col_off + win.width]
                 np.testing.assert_array_equal(f.values, ref, err_msg=f"{f.name} at {win}")
 
