@@ -362,33 +362,39 @@ def _timed_r_tile(*args) -> dict:
 def _write_prior(r_store: NpyRows, total_r: float, grid: Grid, t_sat: Path, t_sat2: Path, t_tif: Path,
                  description: dict, scratch: Path, progress: bool) -> None:
     """Density strips -> tiled GeoTIFF -> COG, and both summed-area tables, each strip under the
-    last table row of the strip before."""
+    last table row of the strip before. Rows are read and appended with plain file I/O (no memory
+    maps, no per-strip msync), into buffers allocated once."""
     h, w = grid.shape
     total = total_r * grid.cell_area
-    sat = NpyRows(t_sat, (h + 1, w + 1), create=True)
-    sat2 = NpyRows(t_sat2, (h + 1, w + 1), create=True)
-    carry = np.zeros(w + 1)
-    carry2 = np.zeros(w + 1)
-    for table in (sat, sat2):
-        table.write(0, 0, carry[None, :])
+    rows = STRIP_ROWS
+    r_buf = np.empty((rows, w))
+    density = np.empty((rows, w), dtype=np.float32)  # the kernel rounds float64 -> float32 as astype does
+    block = np.empty((rows + 1, w + 1))  # row 0: the last table row of the strip before (zeros at first)
+    block2 = np.empty((rows + 1, w + 1))
+    block[0] = 0.0
+    block2[0] = 0.0
     plain = scratch / "density.tif"
     profile = {
         "driver": "GTiff", "height": h, "width": w, "count": 1, "dtype": "float32", "crs": grid.crs,
         "transform": grid.transform, "tiled": True, "blockxsize": 256, "blockysize": 256, "BIGTIFF": "IF_SAFER",
     }
-    with rasterio.open(plain, "w", **profile) as dst:
-        for r0 in tqdm(range(0, h, STRIP_ROWS), desc="prior strips", unit="strip", disable=not progress):
-            r1 = min(h, r0 + STRIP_ROWS)
-            mm = r_store.rows(r0, r1)
-            density = np.empty(mm.shape)
-            block = np.empty((r1 - r0, w + 1))
-            block2 = np.empty((r1 - r0, w + 1))
-            density_table_rows(np.asarray(mm), total, grid.cell_area, carry, carry2, density, block, block2)
-            del mm
-            dst.write(density.astype(np.float32), 1, window=Window(0, r0, w, r1 - r0))
-            sat.write(r0 + 1, 0, block)
-            sat2.write(r0 + 1, 0, block2)
-            carry, carry2 = block[-1].copy(), block2[-1].copy()
+    header = NpyRows(t_sat, (h + 1, w + 1), create=True).offset
+    NpyRows(t_sat2, (h + 1, w + 1), create=True)
+    with (rasterio.open(plain, "w", **profile) as dst, open(r_store.path, "rb") as f_r,
+          open(t_sat, "r+b") as f_sat, open(t_sat2, "r+b") as f_sat2):
+        f_r.seek(r_store.offset)
+        for f_out in (f_sat, f_sat2):
+            f_out.seek(header)
+            f_out.write(memoryview(block[0]))  # the zero top row of the padded table
+        for r0 in tqdm(range(0, h, rows), desc="prior strips", unit="strip", disable=not progress):
+            n = min(rows, h - r0)
+            f_r.readinto(memoryview(r_buf[:n]).cast("B"))
+            density_table_rows(r_buf[:n], total, grid.cell_area, block[0], block2[0], density[:n], block[1 : n + 1], block2[1 : n + 1])
+            dst.write(density[:n], 1, window=Window(0, r0, w, n))
+            f_sat.write(memoryview(block[1 : n + 1]).cast("B"))
+            f_sat2.write(memoryview(block2[1 : n + 1]).cast("B"))
+            block[0] = block[n]
+            block2[0] = block2[n]
         dst.update_tags(MODEL=json.dumps(description), UNITS="probability density per square metre")
     rasterio.shutil.copy(
         plain, t_tif, driver="COG", COMPRESS="DEFLATE", BLOCKSIZE=256,
