@@ -28,6 +28,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 import tempfile
 import time
 import warnings
@@ -280,9 +281,9 @@ def tile_features(config: RegionConfig, specs: dict[str, FeatureSpec], caps: dic
 
 # ----------------------------------------------------------------------------- scratch files
 class NpyRows:
-    """A 2-D ``.npy`` file read and written in row ranges through short-lived memory maps, so a
-    process's resident memory holds only the rows it touches (several processes may write disjoint
-    windows of one file)."""
+    """A 2-D ``.npy`` file written in windows with positioned writes and summed through short-lived
+    memory maps, so a process's resident memory holds only the rows it touches (several processes
+    may write disjoint windows of one file)."""
 
     def __init__(self, path: Path, shape: tuple[int, int], dtype=np.float64, create: bool = False) -> None:
         self.path, self.shape, self.dtype = Path(path), tuple(shape), np.dtype(dtype)
@@ -294,15 +295,14 @@ class NpyRows:
     def _map(self, start: int, shape: tuple[int, ...], mode: str) -> np.memmap:
         return np.memmap(self.path, dtype=self.dtype, mode=mode, offset=self.offset + start * self.dtype.itemsize, shape=shape)
 
-    def rows(self, r0: int, r1: int, mode: str = "r") -> np.memmap:
-        """Rows [r0, r1) as a memory map (drop it after use)."""
-        return self._map(r0 * self.shape[1], (r1 - r0, self.shape[1]), mode)
-
     def write(self, row_off: int, col_off: int, block: np.ndarray) -> None:
-        mm = self.rows(row_off, row_off + block.shape[0], "r+")
-        mm[:, col_off : col_off + block.shape[1]] = block
-        mm.flush()
-        del mm
+        """Write ``block`` at (row_off, col_off) with one positioned write per row: no memory map
+        to fault in and msync, and closing the file publishes it (close-to-open on a shared FS)."""
+        block = np.ascontiguousarray(block, dtype=self.dtype)
+        size, width = self.dtype.itemsize, self.shape[1]
+        with open(self.path, "r+b") as f:
+            for i, row in enumerate(block):
+                os.pwrite(f.fileno(), memoryview(row).cast("B"), self.offset + ((row_off + i) * width + col_off) * size)
 
     def pairwise_sum(self) -> float:
         """Sum of all elements, bit-identical to numpy's ``a.sum()`` of the whole C-ordered array:
