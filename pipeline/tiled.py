@@ -5,11 +5,14 @@ on the tile's own sub-grid grown by a halo, then cropped: one cell for slope (Ho
 and for distances the distance cap in cells — a road farther than the cap cannot change a capped
 distance, so the halo makes every tile's distances exact. Features are grouped by halo, so a
 cheap mask is not rasterised on the wide distance halo. The halo stops at the grid's edge, where
-the in-memory build has its edge too (slope extrapolates there the same way).
+the in-memory build has its edge too (slope extrapolates there the same way). A tile reads only the
+part of each raster it needs (a VRT window) and only the vector features within reach of its cells
+(an OGR VRT spatial filter grown by margin_m + buffer_m + 2 cells), so its cost is its own area,
+not the region's.
 
 Pass 1 (parallel): each tile's unnormalised r (the likelihood product, in the same order as
 :func:`pipeline.build.build_prior`) goes to a float64 ``.npy`` scratch file beside the output.
-Pass 2 (one process, row strips): the global sum of r, with numpy's own pairwise-summation tree
+Pass 2 (one process, row strips read and appended with plain file I/O): the global sum of r, with numpy's own pairwise-summation tree
 (so it is bit-identical to ``r.sum()`` of the whole array), then the density strips into a tiled
 GeoTIFF and the summed-area tables into ``.sat.npy`` / ``.sat2.npy`` with a carried row (the same
 additions as :func:`pipeline.prior.density_table_rows` over the whole grid), then a compressed
