@@ -112,7 +112,14 @@ def write_region(folder: Path, n: int, name: str) -> Path:
 
 
 def _peak_gib() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # Linux: KiB
+    """This process's peak resident memory (GiB). Linux's ``ru_maxrss`` carries over the forking
+    parent's high-water mark across exec (a child of a 2 GiB parent reports >= 2 GiB), so it read
+    the bench parent's peak, not the build's; ``VmHWM`` belongs to the process's own address space."""
+    try:
+        with open("/proc/self/status") as f:
+            return next(int(line.split()[1]) for line in f if line.startswith("VmHWM:")) / 2**20  # KiB
+    except (OSError, StopIteration):
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # not Linux: KiB on most systems
 
 
 def child(mode: str, region: str, out: str, tile: int) -> dict:
@@ -141,7 +148,7 @@ def child(mode: str, region: str, out: str, tile: int) -> dict:
         t = time.perf_counter()
         summary = build_prior_tiled(config, out, client=client, tile=tile, progress=False)
         seconds = time.perf_counter() - t
-        workers = client.run(lambda: resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20)
+        workers = client.run(_peak_gib)
     client_peak = _peak_gib()
     return {"seconds": seconds, "client_peak_gib": client_peak, "worker_peak_gib": workers,
             "peak_gib": client_peak + sum(workers.values()), "summary": summary}
