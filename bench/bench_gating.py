@@ -16,6 +16,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from sklearn.neighbors import BallTree
 
+from bench.timing import best_time
 from tracker import costmodel
 from tracker.gating import gate, gate_threshold
 from tracker.gating_exact import lambda_max_bound
@@ -124,16 +125,6 @@ def numpy_brute(tm, tc, rm, rc, gamma=GAMMA, chunk=32):
         out_i.append(i + s)
         out_j.append(j)
     return np.concatenate(out_i), np.concatenate(out_j)
-
-
-def best_time(fn, repeats: int = 3):
-    """Fastest wall time (s) of ``repeats`` calls and the last result."""
-    best, out = np.inf, None
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t0)
-    return best, out
 
 
 def interleaved(fns: dict, rounds: int) -> tuple[dict, dict]:

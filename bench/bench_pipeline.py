@@ -26,31 +26,13 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.timing import best_time
+
 ROOT = Path(__file__).resolve().parents[1]
 GOAL_BUILD_S = 1.0
 GOAL_LARGE_S = 60.0
 GOAL_LARGE_GIB = 8.0
 GOAL_RECTS_PER_S = 20e6
-
-
-def _best_of(fn, repeat: int) -> tuple[float, object]:
-    """Best wall time of ``repeat`` calls (seconds) and the last result."""
-    best, out = np.inf, None
-    for _ in range(repeat):
-        t = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t)
-    return best, out
-
-
-def _best_cpu(fn, repeat: int) -> float:
-    """Best CPU time (all threads of this process) of ``repeat`` calls: robust to other jobs on the machine."""
-    best = np.inf
-    for _ in range(repeat):
-        c = time.process_time()
-        fn()
-        best = min(best, time.process_time() - c)
-    return best
 
 
 # --- 1. bundled region ------------------------------------------------------------------------
@@ -223,10 +205,10 @@ def bench_feature_baselines(n: int, repeat: int) -> dict:
     mask = np.random.default_rng(2).random((n, n)) < 2e-4
     distance_m(mask[:8, :8], 1.0, 1.0)
     slope_deg(dem[:8, :8], 1.0, 1.0)
-    t_ours, d = _best_of(lambda: distance_m(mask, 20.0, 20.0), repeat)
-    t_scipy, ref = _best_of(lambda: distance_transform_edt(~mask, sampling=(20.0, 20.0)), repeat)
-    t_slope, s = _best_of(lambda: slope_deg(dem, 20.0, 20.0), repeat)
-    t_slope_np, s_np = _best_of(lambda: _horn_numpy(dem, 20.0, 20.0), repeat)
+    t_ours, d = best_time(lambda: distance_m(mask, 20.0, 20.0), repeat)
+    t_scipy, ref = best_time(lambda: distance_transform_edt(~mask, sampling=(20.0, 20.0)), repeat)
+    t_slope, s = best_time(lambda: slope_deg(dem, 20.0, 20.0), repeat)
+    t_slope_np, s_np = best_time(lambda: _horn_numpy(dem, 20.0, 20.0), repeat)
     return {
         "n": n,
         "distance_s": t_ours,
@@ -271,10 +253,10 @@ def bench_rect_sums(n_rects: int, repeat: int) -> dict:
     hu, hv = rng.uniform(0, 20, (2, n_rects))
     u0, u1, v0, v1 = cu - hu, cu + hu, cv - hv, cv + hv
     prior.rect_sum_px(u0[:10], u1[:10], v0[:10], v1[:10])  # compile
-    t_ours, ours = _best_of(lambda: prior.rect_sum_px(u0, u1, v0, v1), repeat)
-    cpu_ours = _best_cpu(lambda: prior.rect_sum_px(u0, u1, v0, v1), repeat)
+    t_ours, ours = best_time(lambda: prior.rect_sum_px(u0, u1, v0, v1), repeat)
+    cpu_ours = best_time(lambda: prior.rect_sum_px(u0, u1, v0, v1), repeat, time.process_time)[0]
     sat = np.asarray(prior.sat)
-    t_np, base = _best_of(lambda: _rect_sums_numpy(sat, u0, u1, v0, v1), repeat)
+    t_np, base = best_time(lambda: _rect_sums_numpy(sat, u0, u1, v0, v1), repeat)
     return {
         "n_rects": n_rects,
         "rect_sum_px_per_s": n_rects / t_ours,

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 from affine import Affine
 
+from bench.timing import best_time
 from pipeline.grid import Grid
 from pipeline.prior import TerrainPrior
 from tracker.reference import reference_integrate
@@ -85,12 +86,7 @@ def mc_samples_for(prior: TerrainPrior, mean: np.ndarray, cov: np.ndarray, error
 
 def rate(f, n: int, repeat: int = 2) -> float:
     """Best-of-``repeat`` items per second of ``f()`` doing n items."""
-    best = np.inf
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        f()
-        best = min(best, time.perf_counter() - t0)
-    return n / best
+    return n / best_time(f, repeat)[0]
 
 
 def run(quick: bool = False) -> dict:
