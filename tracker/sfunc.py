@@ -122,19 +122,20 @@ def _check_nk(n: np.ndarray, k: np.ndarray) -> None:
         raise ValueError(f"S(n, k) needs n >= 0 and k >= 0, got n={n.ravel()[:5].tolist()}, k={k.ravel()[:5].tolist()}")
 
 
-def log_s(model: SModel, n, k) -> np.ndarray:
-    """log S(n, k), vectorised over integer arrays n, k (numbers of detected targets and of reports)."""
+def _over_nk(code_fn, model: SModel, n, k) -> np.ndarray:
+    """``code_fn(kind, param, n, k)`` over broadcast integer arrays n, k."""
     n, k = np.broadcast_arrays(np.asarray(n, dtype=np.int64), np.asarray(k, dtype=np.int64))
     _check_nk(n, k)
     kind, param = model.code
-    out = np.array([log_s_code(kind, param, int(a), int(b)) for a, b in zip(n.ravel(), k.ravel(), strict=True)])
+    out = np.array([code_fn(kind, param, int(a), int(b)) for a, b in zip(n.ravel(), k.ravel(), strict=True)])
     return out.reshape(n.shape)
+
+
+def log_s(model: SModel, n, k) -> np.ndarray:
+    """log S(n, k), vectorised over integer arrays n, k (numbers of detected targets and of reports)."""
+    return _over_nk(log_s_code, model, n, k)
 
 
 def log_s_ratio(model: SModel, n, k) -> np.ndarray:
     """log S(n + 1, k) - log S(n, k), vectorised over integer arrays n, k."""
-    n, k = np.broadcast_arrays(np.asarray(n, dtype=np.int64), np.asarray(k, dtype=np.int64))
-    _check_nk(n, k)
-    kind, param = model.code
-    out = np.array([log_s_ratio_code(kind, param, int(a), int(b)) for a, b in zip(n.ravel(), k.ravel(), strict=True)])
-    return out.reshape(n.shape)
+    return _over_nk(log_s_ratio_code, model, n, k)
