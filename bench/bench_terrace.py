@@ -1,4 +1,5 @@
-"""Gaussian-terrace integration: integrals per second against spread, with the reference and Monte Carlo.
+"""Integration of Gaussians against the prior: integrals per second against spread, scale-space
+(the default) and terraces, with the reference and Monte Carlo.
 
 Run: ``.venv/bin/python -c "import bench.bench_terrace as b, json; print(json.dumps(b.run(quick=True), indent=1))"``
 (``quick``: 400 x 400 grid, 20,000 Gaussians; full: 2,000 x 2,000 grid, 1,000,000 Gaussians).
@@ -6,10 +7,10 @@ Run: ``.venv/bin/python -c "import bench.bench_terrace as b, json; print(json.du
 
 The prior is synthetic (cell-level log-normal noise on a smooth pattern, 20 m cells). Gaussians
 have random orientation, eccentricity up to 3:1 and centres uniform over the grid. For each spread
-(major σ in cells) the terrace rate is measured on a whole batch; on a small subset the dense
-reference (tracker.reference) gives the truth, the terrace's relative error and the reference's
-own rate; a Monte-Carlo estimator (mean of r at samples of the Gaussian) is then given, per
-Gaussian, the sample count that matches the terrace's median error at that spread
+(major σ in cells) the rates of both methods are measured on a whole batch; on a small subset the
+dense reference (tracker.reference) gives the truth, each method's relative error and the
+reference's own rate; a Monte-Carlo estimator (mean of r at samples of the Gaussian) is then given,
+per Gaussian, the sample count that matches the default method's median error at that spread
 (n = CV² / error², CV the coefficient of variation of r under the Gaussian); it is run with at
 most ``MC_CAP`` samples and its rate at the full count extrapolated from its sample throughput.
 """
@@ -27,6 +28,7 @@ from affine import Affine
 from bench.timing import best_time
 from pipeline.grid import Grid
 from pipeline.prior import TerrainPrior
+from tracker import scalespace
 from tracker.reference import reference_integrate
 from tracker.terrace import integrate
 
@@ -94,27 +96,36 @@ def run(quick: bool = False) -> dict:
     size, n_batch, n_check = (400, 20_000, 4) if quick else (2000, 1_000_000, 12)
     mc_cap = MC_CAP // 10 if quick else MC_CAP
     prior = synthetic_prior(size)
-    integrate(prior, *gaussians(prior.grid, 10, 5.0, rng))  # compile outside the timings
+    for method in ("scalespace", "terraces"):  # compile outside the timings
+        integrate(prior, *gaussians(prior.grid, 10, 5.0, rng), method=method)
 
     # Headline: one batch with spreads log-uniform over 1..1000 cells.
     spread = np.exp(rng.uniform(0.0, np.log(1000.0), n_batch))
     means, covs = gaussians(prior.grid, n_batch, spread, rng)
+    t0 = time.perf_counter()
+    integrate(prior, means, covs)  # the first call on a prior builds its pyramid's levels
+    first_call = time.perf_counter() - t0
+    pyr = scalespace.pyramid(prior, squared=False)
     cpu0, wall0 = time.process_time(), time.perf_counter()
     integrate(prior, means, covs)
     mixed_rate = n_batch / (time.perf_counter() - wall0)
     mixed_cpu_rate = n_batch / (time.process_time() - cpu0)  # per CPU-second, all threads summed
+    sub = slice(0, n_batch // 10)
+    terrace_mixed_rate = rate(lambda: integrate(prior, means[sub], covs[sub], method="terraces"), n_batch // 10, repeat=1)
 
     rows, per_spread = [], []
     for s in SPREADS:
         n_s = n_batch // 10
         means, covs = gaussians(prior.grid, n_s, float(s), rng)
-        terrace_rate = rate(lambda m=means, c=covs: integrate(prior, m, c), n_s, repeat=1)
+        fast_rate = rate(lambda m=means, c=covs: integrate(prior, m, c), n_s)
+        terrace_rate = rate(lambda m=means[: n_s // 4], c=covs[: n_s // 4]: integrate(prior, m, c, method="terraces"), n_s // 4, repeat=1)
         m_chk, c_chk = means[:n_check], covs[:n_check]
         t0 = time.perf_counter()
         ref = reference_integrate(prior, m_chk, c_chk)
         ref_rate = n_check / (time.perf_counter() - t0)
         keep = ref > 0
         err = np.abs(integrate(prior, m_chk, c_chk)[keep] / ref[keep] - 1.0)
+        terrace_err = np.abs(integrate(prior, m_chk, c_chk, method="terraces")[keep] / ref[keep] - 1.0)
         target = max(float(np.median(err)), 1e-4)
         samples = np.array([mc_samples_for(prior, m, c, target, rng) for m, c in zip(m_chk, c_chk, strict=True)])
         # Run Monte Carlo with at most MC_CAP samples each and scale its measured sample throughput
@@ -128,32 +139,41 @@ def run(quick: bool = False) -> dict:
         per_spread.append(
             {
                 "spread_cells": s,
+                "scalespace_per_s": fast_rate,
+                "scalespace_median_rel_err": float(np.median(err)),
+                "scalespace_max_rel_err": float(err.max()),
                 "terrace_per_s": terrace_rate,
-                "terrace_median_rel_err": float(np.median(err)),
-                "terrace_max_rel_err": float(err.max()),
+                "terrace_median_rel_err": float(np.median(terrace_err)),
+                "terrace_max_rel_err": float(terrace_err.max()),
                 "reference_per_s": ref_rate,
                 "mc_per_s": mc_rate,
                 "mc_samples_median": int(np.median(samples)),
                 "mc_median_rel_err_run": float(np.median(mc_err)),
                 "mc_median_rel_err_at_full_samples": float(np.median(mc_err_expected)),
-                "terrace_vs_reference": terrace_rate / ref_rate,
-                "terrace_vs_mc": terrace_rate / mc_rate,
+                "scalespace_vs_reference": fast_rate / ref_rate,
+                "scalespace_vs_mc": fast_rate / mc_rate,
+                "scalespace_vs_terraces": fast_rate / terrace_rate,
             }
         )
         rows.append(
             {
                 "σ (cells)": s,
-                "terrace /s": f"{terrace_rate:,.0f}",
+                "scale-space /s": f"{fast_rate:,.0f}",
                 "median err": f"{np.median(err):.1e}",
+                "terraces /s": f"{terrace_rate:,.0f}",
+                "terrace median err": f"{np.median(terrace_err):.1e}",
                 "reference /s": f"{ref_rate:,.1f}",
                 "MC /s (equal err)": f"{mc_rate:,.1f}",
-                "x reference": f"{terrace_rate / ref_rate:,.0f}",
-                "x MC": f"{terrace_rate / mc_rate:,.0f}",
+                "x terraces": f"{fast_rate / terrace_rate:,.1f}",
+                "x reference": f"{fast_rate / ref_rate:,.0f}",
+                "x MC": f"{fast_rate / mc_rate:,.0f}",
             }
         )
     rows.append(
         f"mixed spreads 1..1000 cells, {n_batch:,} Gaussians on a {size}x{size} grid: {mixed_rate:,.0f} integrals/s "
-        f"wall, {mixed_cpu_rate:,.0f} per CPU-second (goal >= 1,000,000/s on 2 cores; load average {os.getloadavg()[0]:.1f})"
+        f"wall, {mixed_cpu_rate:,.0f} per CPU-second (goal >= 1,000,000/s on 2 cores; load average {os.getloadavg()[0]:.1f}); "
+        f"terraces {terrace_mixed_rate:,.0f}/s ({mixed_rate / terrace_mixed_rate:.1f}x); first call incl. building the "
+        f"pyramid {first_call:.1f} s ({pyr.coef.nbytes / 2**20:,.0f} MiB, {pyr.scale.size} levels)"
     )
     plot(per_spread, mixed_rate, size)
     return {
@@ -161,6 +181,10 @@ def run(quick: bool = False) -> dict:
         "batch": n_batch,
         "mixed_per_s": mixed_rate,
         "mixed_per_cpu_s": mixed_cpu_rate,
+        "terrace_mixed_per_s": terrace_mixed_rate,
+        "first_call_s": first_call,
+        "pyramid_mib": pyr.coef.nbytes / 2**20,
+        "pyramid_levels": int(pyr.scale.size),
         "load_average": list(os.getloadavg()),
         "goal_per_s": 1_000_000,
         "per_spread": per_spread,
@@ -177,11 +201,12 @@ def plot(per_spread: list[dict], mixed_rate: float, size: int) -> None:
 
     s = [p["spread_cells"] for p in per_spread]
     fig, ax = plt.subplots(figsize=(6, 4))
-    ax.loglog(s, [p["terrace_per_s"] for p in per_spread], "o-", label="terrace (default settings)")
+    ax.loglog(s, [p["scalespace_per_s"] for p in per_spread], "o-", label="scale-space (default)")
+    ax.loglog(s, [p["terrace_per_s"] for p in per_spread], "d-", label="terraces (default settings)")
     ax.loglog(s, [p["reference_per_s"] for p in per_spread], "s--", label="dense reference")
     ax.loglog(s, [p["mc_per_s"] for p in per_spread], "^--", label="Monte Carlo, equal error")
     ax.axhline(1e6, color="grey", lw=0.8, ls=":", label="goal 1e6/s")
-    ax.axhline(mixed_rate, color="C0", lw=0.8, ls="-.", label="terrace, mixed spreads")
+    ax.axhline(mixed_rate, color="C0", lw=0.8, ls="-.", label="scale-space, mixed spreads")
     ax.set_xlabel("Gaussian spread σ (cells)")
     ax.set_ylabel("integrals per second (2 cores)")
     ax.set_title(f"∫ G r dy on a {size}×{size} prior")
@@ -195,7 +220,7 @@ def plot(per_spread: list[dict], mixed_rate: float, size: int) -> None:
 
 
 def study(n: int = 80, seed: int = 3) -> str:
-    """Accuracy vs cost (terraces x strips) as a markdown table: relative error against the reference
+    """Accuracy vs cost (terraces x strips, and the scale-space default) as a markdown table: relative error against the reference
     on a 300 x 300 synthetic prior, σ log-uniform 0.5..1000 cells, eccentricity to 100:1, centres
     inside the grid and up to 15 % beyond it with >= 1 % of their mass on it."""
     from tracker.reference import covered_mass
@@ -219,11 +244,11 @@ def study(n: int = 80, seed: int = 3) -> str:
         errs = []
         for sq in (False, True):
             pos = ref[sq] > 0
-            e = np.abs(integrate(prior, means, covs, squared=sq, n_terraces=k, n_strips=s)[pos] / ref[sq][pos] - 1)
+            e = np.abs(integrate(prior, means, covs, squared=sq, method="terraces", n_terraces=k, n_strips=s)[pos] / ref[sq][pos] - 1)
             errs += [np.median(e), e.max()]
-        speed = rate(lambda k=k, s=s: integrate(prior, big_m, big_c, n_terraces=k, n_strips=s), len(big_m))
+        speed = rate(lambda k=k, s=s: integrate(prior, big_m, big_c, method="terraces", n_terraces=k, n_strips=s), len(big_m))
         lines.append(f"| {k} | {s} | {errs[0]:.1e} | {errs[1]:.1e} | {errs[2]:.1e} | {errs[3]:.1e} | {speed:,.0f} |")
-    paper = {"n_terraces": 16, "n_strips": 8, "mass": 0.99, "scheme": "paper", "shear": 0.0}
+    paper = {"method": "terraces", "n_terraces": 16, "n_strips": 8, "mass": 0.99, "scheme": "paper", "shear": 0.0}
     errs = []
     for sq in (False, True):
         pos = ref[sq] > 0
@@ -231,6 +256,14 @@ def study(n: int = 80, seed: int = 3) -> str:
         errs += [np.median(e), e.max()]
     speed = rate(lambda: integrate(prior, big_m, big_c, **paper), len(big_m))
     lines.append(f"| 16, paper's rule (equal mass, stop at 99 %) | 8, fixed | {errs[0]:.1e} | {errs[1]:.1e} | {errs[2]:.1e} | {errs[3]:.1e} | {speed:,.0f} |")
+    errs = []
+    for sq in (False, True):
+        pos = ref[sq] > 0
+        e = np.abs(integrate(prior, means, covs, squared=sq)[pos] / ref[sq][pos] - 1)
+        errs += [np.median(e), e.max()]
+    integrate(prior, big_m, big_c)  # build the pyramid's levels outside the timing
+    speed = rate(lambda: integrate(prior, big_m, big_c), len(big_m))
+    lines.append(f"| scale-space (default method) | — | {errs[0]:.1e} | {errs[1]:.1e} | {errs[2]:.1e} | {errs[3]:.1e} | {speed:,.0f} |")
     return "\n".join(lines)
 
 

@@ -41,6 +41,7 @@ import numba as nb
 import numpy as np
 
 from pipeline.prior import TerrainPrior, sat_rect
+from tracker import scalespace
 from tracker.reports import check_gaussians
 
 N_TERRACES = 24
@@ -331,6 +332,18 @@ def grid_radii(uc, vc, cuu, cuv, cvv, w, h):
     return (0.0 if inside else min(d_cols, d_rows)), hi, d_rows < d_cols
 
 
+@nb.njit(cache=True, parallel=True)
+def near_grid(uc, vc, cuu, cuv, cvv, w, h, max_rho, max_spread):
+    """True for Gaussians within Mahalanobis distance ``max_rho`` of the grid [0,w]x[0,h] whose
+    2π√det (pixel²) is at most ``max_spread`` times the grid's area: most of their mass is on it."""
+    out = np.empty(uc.shape[0], dtype=np.bool_)
+    for n in nb.prange(uc.shape[0]):
+        lo2 = grid_radii(uc[n], vc[n], cuu[n], cuv[n], cvv[n], w, h)[0]
+        spread = 2.0 * np.pi * np.sqrt(cuu[n] * cvv[n] - cuv[n] * cuv[n])
+        out[n] = lo2 <= max_rho * max_rho and spread <= max_spread * w * h
+    return out
+
+
 @nb.njit(cache=True, inline="always")
 def _orient(rows, uc, vc, cuu, cvv, w, h):
     """(strip-axis centre, other-axis centre, strip-axis σ, grid size along it, along the other)."""
@@ -402,6 +415,7 @@ def integrate(
     covs: np.ndarray,
     squared: bool = False,
     *,
+    method: Literal["scalespace", "terraces"] = "scalespace",
     n_terraces: int = N_TERRACES,
     n_strips: int = N_STRIPS,
     mass: float = MASS,
@@ -411,10 +425,15 @@ def integrate(
     """∫ G(y; a_n, A_n) r(y) dy per m² (or ∫ G r² dy per m⁴ when ``squared``) for N 2-D Gaussians.
 
     ``means`` (N, 2) metres in the prior's CRS, ``covs`` (N, 2, 2) m². The prior is zero off its
-    grid, so Gaussians partly or wholly off the grid are fine. ``shear = 0`` keeps every ellipse
-    at ``n_strips`` strips; ``scheme="paper"`` uses the paper's equal-mass terraces (with
-    ``mass = 0.99`` its stop). Raises ``ValueError`` naming the indices of non-finite means or of
-    covariances that are not symmetric positive definite.
+    grid, so Gaussians partly or wholly off the grid are fine.
+
+    ``method="scalespace"`` (default) integrates with the prior's Gaussian pyramid
+    (:mod:`tracker.scalespace`) the Gaussians that have most of their mass on the grid and sends
+    the rest (centres more than ``NEAR_RHO`` σ off the grid, spreads wider than the grid, thinner
+    than ~500:1) to the terraces; ``method="terraces"`` uses the terraces for all.
+    Terrace settings: ``shear = 0`` keeps every ellipse at ``n_strips`` strips; ``scheme="paper"``
+    uses the paper's equal-mass terraces (with ``mass = 0.99`` its stop). Raises ``ValueError``
+    naming the indices of non-finite means or of covariances that are not symmetric positive definite.
     """
     means, covs = check_gaussians(means, covs, "integrate")
     if means.shape[1] != 2:
@@ -429,14 +448,38 @@ def integrate(
         raise ValueError(f"integrate: shear must be >= 0, got {shear!r}")
     if scheme not in ("adaptive", "paper"):
         raise ValueError(f"integrate: scheme must be 'adaptive' or 'paper', got {scheme!r}")
+    if method not in ("scalespace", "terraces"):
+        raise ValueError(f"integrate: method must be 'scalespace' or 'terraces', got {method!r}")
     uc, vc, cuu, cuv, cvv = pixel_gaussians(prior, means, covs)
+    result = np.empty(means.shape[0])
+    rest = np.arange(means.shape[0])
+    if method == "scalespace" and rest.size:
+        h, w = prior.grid.shape
+        near = np.flatnonzero(near_grid(uc, vc, cuu, cuv, cvv, float(w), float(h), NEAR_RHO, NEAR_SPREAD))
+        values, counts = scalespace.integrate_pixels(prior, *(a[near] for a in (uc, vc, cuu, cuv, cvv)), squared)
+        done = counts > 0
+        result[near[done]] = values[done]
+        rest = np.setdiff1d(rest, near[done], assume_unique=True)
+    if rest.size:
+        result[rest] = _terraces(prior, *(a[rest] for a in (uc, vc, cuu, cuv, cvv)), squared, n_terraces, n_strips, mass, shear, scheme)
+    return result
+
+
+NEAR_RHO = 0.5
+"""Mahalanobis distance from the grid beyond which ``method="scalespace"`` leaves a Gaussian to the terraces."""
+NEAR_SPREAD = 4.0
+"""2π√det A over the grid's area beyond which ``method="scalespace"`` leaves a Gaussian to the terraces."""
+
+
+def _terraces(prior, uc, vc, cuu, cuv, cvv, squared, n_terraces, n_strips, mass, shear, scheme) -> np.ndarray:
+    """The terrace integrals (per m² or m⁴) of Gaussians in pixel units."""
     strips = n_strips_for(cuu, cuv, cvv, n_strips, shear)
     counts, which = np.unique(strips, return_inverse=True)
     offsets, t, tbar, eta = strip_tables(counts)
     order = locality_order(prior.grid.shape, uc, vc, cuu, cvv)
     args = [a[order] for a in (uc, vc, cuu, cuv, cvv, strips, offsets[which])]
     sat = np.asarray(prior.sat2 if squared else prior.sat)
-    out = np.empty(means.shape[0])
+    out = np.empty(uc.shape[0])
     if scheme == "adaptive":
         _terrace_kernel(sat, *args, int(n_terraces), np.sqrt(-2.0 * np.log1p(-mass)), t, tbar, eta, out)
     else:

@@ -1,0 +1,124 @@
+"""The scale-space integrator's parts against closed forms and direct sums.
+
+Oracles: f_s = r ⊛ G_s summed directly over cells with scipy's normal CDF; E[Φ(ρξ - c)] =
+Φ(-c/√(1+ρ²)) for the quadrature rules; products of normal CDFs for axis-aligned Gaussians; the
+dense reference (tracker.reference) for the hand-over to the terraces.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.special import ndtr
+
+from tests.tracker.test_terrace import CELL, GRID, ROUGH, H, W, rough_field
+from tracker import scalespace
+from tracker.reference import reference_integrate
+from tracker.terrace import integrate, pixel_gaussians
+
+
+def smoothed(values: np.ndarray, u: np.ndarray, v: np.ndarray, s: float) -> np.ndarray:
+    """f_s at points (u, v) by the direct sum Σ_cells value · ΔΦ_u · ΔΦ_v over the whole grid."""
+    wu = np.diff(ndtr((np.arange(values.shape[1] + 1)[None, :] - u[:, None]) / s), axis=1)
+    wv = np.diff(ndtr((np.arange(values.shape[0] + 1)[None, :] - v[:, None]) / s), axis=1)
+    return np.einsum("nj,ji,ni->n", wv, values, wu)
+
+
+def spline_at(pyr: scalespace.Pyramid, k: int, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    args = (pyr.coef, pyr.offset[k], pyr.nu[k], pyr.nv[k], pyr.u0[k], pyr.v0[k], pyr.step[k])
+    return np.array([scalespace._bspline(*args, a, b) for a, b in zip(u, v, strict=True)])
+
+
+def test_every_level_matches_the_direct_smoothing() -> None:
+    """Level 0 is exact on cells, the others come by recursion; all agree with the direct sum."""
+    field = rough_field(seed=3, shape=(40, 56))
+    pyr = scalespace.Pyramid(field)
+    pyr.ensure(60.0)
+    assert pyr.scale[-1] >= 60.0 and np.allclose(np.diff(np.log(pyr.scale)), np.log(scalespace.RATIO))
+    rng = np.random.default_rng(0)
+    for k in range(pyr.scale.size):
+        s = pyr.scale[k]
+        u = rng.uniform(-3 * s, 56 + 3 * s, 60)
+        v = rng.uniform(-3 * s, 40 + 3 * s, 60)
+        exact = smoothed(field, u, v, s)
+        # cubic B-spline on a lattice of s/2: ~1e-4 of the field's jumps, which reach its maximum
+        assert np.abs(spline_at(pyr, k, u, v) - exact).max() <= 3e-4 * field.max(), f"level {k}, s = {s:.2f}"
+
+
+def test_levels_are_added_on_demand_and_kept() -> None:
+    pyr = scalespace.pyramid(ROUGH, squared=False)
+    assert pyr is scalespace.pyramid(ROUGH, squared=False)
+    assert pyr is not scalespace.pyramid(ROUGH, squared=True)
+    pyr.ensure(5.0)
+    before = pyr.coef[: pyr.offset[pyr.scale.size]].copy()
+    n = pyr.scale.size
+    pyr.ensure(50.0)
+    assert pyr.scale.size > n
+    np.testing.assert_array_equal(pyr.coef[: before.size], before)
+
+
+@pytest.mark.parametrize("rho", [0.0, 0.01, 0.2, 0.5, 0.64, 1.0, 1.59, 1.61, 3.0, 10.0, 60.0])
+def test_rules_average_smoothed_steps(rho: float) -> None:
+    """E[Φ(ρξ - c)], ξ ~ N(0,1): the step smoothed at the level's σ, every offset c."""
+    xs, ws = np.empty(scalespace.MAX_POINTS), np.empty(scalespace.MAX_POINTS)
+    n = scalespace._rule(rho, xs, ws)
+    assert n >= 1
+    c = np.linspace(-12.0, 12.0, 1201)
+    est = ndtr(xs[:n][None, :] - c[:, None]) @ ws[:n]
+    assert np.abs(est - ndtr(-c / np.sqrt(1.0 + rho * rho))).max() <= 2 * scalespace.TOL
+    assert ws[:n].sum() == pytest.approx(1.0, abs=1e-12)
+
+
+def test_rules_give_up_beyond_their_size() -> None:
+    xs, ws = np.empty(64), np.empty(64)
+    assert scalespace._rule(100.0, xs, ws) == 0
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    su=st.floats(np.log(0.05), np.log(0.99)).map(np.exp),
+    ratio=st.floats(1.0, 30.0),
+    uc=st.floats(-2.0, W + 2.0),
+    vc=st.floats(-2.0, H + 2.0),
+    transpose=st.booleans(),
+)
+def test_sub_cell_gaussians_match_the_closed_form(su, ratio, uc, vc, transpose) -> None:
+    """Smaller σ under one cell (exact smoothing on the fly): axis-aligned, ΔΦ_vᵀ r ΔΦ_u exactly."""
+    sv = su * ratio
+    if transpose:
+        su, sv = sv, su
+    exact = float(np.diff(ndtr((np.arange(H + 1) - vc) / sv)) @ ROUGH.density @ np.diff(ndtr((np.arange(W + 1) - uc) / su)))
+    if exact < 1e-3 * ROUGH.density.mean():
+        return  # on the lake or off the grid: nothing to compare relatively
+    got, counts = scalespace.integrate_pixels(ROUGH, *(np.array([x]) for x in (uc, vc, su * su, 0.0, sv * sv)), False)
+    assert counts[0] > 0
+    assert got[0] == pytest.approx(exact, rel=2e-3)
+
+
+def test_cost_is_the_same_at_every_spread() -> None:
+    """The same shape at spreads from 1 to ~10,000 cells costs the same number of look-ups."""
+    scale = np.array([1.3 * scalespace.RATIO**k for k in range(0, 56, 4)])
+    angle = 0.6
+    c, s = np.cos(angle), np.sin(angle)
+    major, minor = 2.2 * scale, scale
+    cuu = c * c * major**2 + s * s * minor**2
+    cvv = s * s * major**2 + c * c * minor**2
+    cuv = c * s * (major**2 - minor**2)
+    n = scale.size
+    _, counts = scalespace.integrate_pixels(ROUGH, np.full(n, W / 2), np.full(n, H / 2), cuu, cuv, cvv, False)
+    assert np.all(counts == counts[0]) and counts[0] > 0
+
+
+def test_needle_gaussians_are_handed_to_the_terraces() -> None:
+    """2,000:1 needs more points than the rules have: the terraces integrate it, still to 1 %."""
+    cov = np.diag([(400.0 * CELL) ** 2, (0.2 * CELL) ** 2])
+    angle = 0.3
+    rot = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
+    cov = rot @ cov @ rot.T
+    cov = 0.5 * (cov + cov.T)
+    mean = np.array([GRID.transform.c + 0.4 * W * CELL, GRID.transform.f - 0.6 * H * CELL])
+    assert scalespace.integrate_pixels(ROUGH, *(np.atleast_1d(a) for a in pixel_gaussians(ROUGH, mean[None], cov[None])), False)[1][0] == 0
+    ref = reference_integrate(ROUGH, mean[None], cov[None])[0]
+    assert integrate(ROUGH, mean[None], cov[None])[0] == pytest.approx(ref, rel=0.01)

@@ -1,0 +1,373 @@
+"""Scale-space integration of 2-D Gaussians against a terrain prior: a Gaussian pyramid of the prior.
+
+The identity behind it: a Gaussian G_A splits as G_{s²I} ⊛ G_C with C = A - s²I whenever s² is at
+most A's smaller eigenvalue, so
+
+    ∫ G(y; a, A) r(y) dy = E_{z ~ N(a, C)} [ f_s(z) ],    f_s = r ⊛ G_{s²I}.
+
+The prior smoothed at scale s, f_s, is stored once per prior on lattices of spacing s/γ for scales
+s_k = s_0 q^k (a Gaussian pyramid, as cubic B-spline coefficients). Each integral picks the largest
+stored s_k under its smaller standard deviation and averages f_{s_k} over the leftover Gaussian
+N(a, C) with a product rule in C's eigenframe: Gauss-Hermite where C is narrow against s_k, the
+trapezoid rule (spacing ≤ α s_k) along an eccentric major axis. f_s is smooth on the scale s, so a
+few lattice look-ups give an integral accurate to ~1e-4 whatever the spread: the cost depends on the
+eccentricity and on where the smaller σ falls between two levels, never on the spread.
+
+Level 0 is exact: r is constant on cells, so f_{s_0} at a node is Σ_cells r · ΔΦ_u · ΔΦ_v. Level k+1
+comes from level k by the trapezoid rule on the lattice (f_{s_{k+1}} = f_{s_k} ⊛ G_d, d² = s_{k+1}² -
+s_k²), accurate to ~e^{-2π²γ² d²/(s_k²+d²)} because f_{s_k} is band-limited on the scale s_k.
+Lattices reach 7 s_k beyond the grid (the prior is zero off the grid; f_s there is below Φ(-7)).
+
+Units: everything here is in pixel units (u = column, v = row, cells); :func:`integrate` converts.
+"""
+
+from __future__ import annotations
+
+import math
+import weakref
+from dataclasses import dataclass, field
+
+import numba as nb
+import numpy as np
+from scipy import sparse
+from scipy.ndimage import spline_filter
+from scipy.special import ndtr
+
+from pipeline.prior import TerrainPrior
+
+S0 = 1.0
+"""Finest smoothing scale, cells: Gaussians with a smaller σ go to the terraces."""
+RATIO = 2.0**0.25
+"""Ratio of consecutive scales."""
+GAMMA = 2.0
+"""Lattice nodes per smoothing σ (spacing s/γ)."""
+PAD = 7.0
+"""Lattice margin beyond the grid, in σ of the level."""
+
+
+@dataclass
+class Pyramid:
+    """Cubic B-spline coefficients of f_{s_k} = r ⊛ G_{s_k} for k = 0..L-1, flattened for the kernel.
+
+    Per level: ``scale`` s_k (cells), ``step`` lattice spacing (cells), ``u0``/``v0`` pixel
+    coordinates of node (0, 0), ``nu``/``nv`` node counts, ``offset`` into ``coef`` (row-major v, u).
+    """
+
+    field: np.ndarray  # (H, W) the prior's values per cell (density or density²)
+    scale: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    step: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    u0: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    v0: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    nu: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    nv: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    offset: np.ndarray = field(default_factory=lambda: np.zeros(1, np.int64))
+    coef: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
+    _values: list = field(default_factory=list)  # per level (nv, nu) float64 samples, for the next level
+
+    def ensure(self, top_scale: float) -> None:
+        """Build levels until the coarsest reaches ``top_scale`` cells (at least level 0)."""
+        new = []
+        while self.scale.size + len(new) == 0 or (new[-1][0] if new else self.scale[-1]) < top_scale:
+            k = self.scale.size + len(new)
+            s = S0 * RATIO**k
+            h = s / GAMMA
+            height, width = self.field.shape
+            pad = PAD * s + 2.0 * h
+            nu = int(np.ceil((width + 2 * pad) / h)) + 1
+            nv = int(np.ceil((height + 2 * pad) / h)) + 1
+            u = -pad + h * np.arange(nu)
+            v = -pad + h * np.arange(nv)
+            if k == 0:
+                values = _exact_level(self.field, u, v, s)
+            else:
+                prev = new[-1] if new else (self.scale[-1], self.step[-1], self.u0[-1], self.v0[-1], self._values[-1])
+                ps, ph, pu0, pv0, pvals = prev[0], prev[1], prev[2], prev[3], prev[4]
+                d = np.sqrt(s * s - ps * ps)
+                pu = pu0 + ph * np.arange(pvals.shape[1])
+                pv = pv0 + ph * np.arange(pvals.shape[0])
+                values = _smooth(pvals, pu, pv, u, v, d, ph)
+            new.append((s, h, u[0], v[0], values))
+        if not new:
+            return
+        coefs = [spline_filter(vals, order=3, mode="mirror").astype(np.float32).ravel() for *_, vals in new]
+        self.scale = np.append(self.scale, [n[0] for n in new])
+        self.step = np.append(self.step, [n[1] for n in new])
+        self.u0 = np.append(self.u0, [n[2] for n in new])
+        self.v0 = np.append(self.v0, [n[3] for n in new])
+        self.nu = np.append(self.nu, [n[4].shape[1] for n in new]).astype(np.int64)
+        self.nv = np.append(self.nv, [n[4].shape[0] for n in new]).astype(np.int64)
+        self.offset = np.append(self.offset, self.offset[-1] + np.cumsum([c.size for c in coefs])).astype(np.int64)
+        self.coef = np.concatenate([self.coef, *coefs])
+        self._values = [*self._values, *(n[4] for n in new)][-1:]  # only the top level seeds the next
+
+
+def _box_weights(nodes: np.ndarray, n_cells: int, s: float) -> sparse.csr_matrix:
+    """(nodes, cells) weights ΔΦ: the mass of cell [i, i+1] under N(node, s²), banded to ±8 s."""
+    reach = int(np.ceil(8.0 * s)) + 1
+    rows, cols = [], []
+    for off in range(-reach, reach + 1):
+        i = np.floor(nodes).astype(np.int64) + off
+        ok = (i >= 0) & (i < n_cells)
+        rows.append(np.flatnonzero(ok))
+        cols.append(i[ok])
+    r = np.concatenate(rows)
+    c = np.concatenate(cols)
+    w = ndtr((c + 1 - nodes[r]) / s) - ndtr((c - nodes[r]) / s)
+    return sparse.csr_matrix((w, (r, c)), shape=(nodes.size, n_cells))
+
+
+def _exact_level(values: np.ndarray, u: np.ndarray, v: np.ndarray, s: float) -> np.ndarray:
+    """f_s at the nodes u × v exactly: Σ_cells value · ΔΦ_u · ΔΦ_v (the field is constant on cells)."""
+    bu = _box_weights(u, values.shape[1], s)
+    bv = _box_weights(v, values.shape[0], s)
+    return np.asarray(bv @ (bu @ values.T).T)
+
+
+def _gauss_weights(nodes: np.ndarray, src: np.ndarray, d: float, h: float) -> sparse.csr_matrix:
+    """(nodes, src) trapezoid weights h·φ_d(node - src) for a lattice ``src`` of spacing h, banded to ±10 d."""
+    reach = int(np.ceil(10.0 * d / h)) + 1
+    first = np.floor((nodes - src[0]) / h).astype(np.int64)
+    rows, cols = [], []
+    for off in range(-reach, reach + 1):
+        j = first + off
+        ok = (j >= 0) & (j < src.size)
+        rows.append(np.flatnonzero(ok))
+        cols.append(j[ok])
+    r = np.concatenate(rows)
+    c = np.concatenate(cols)
+    x = (nodes[r] - src[c]) / d
+    w = h * np.exp(-0.5 * x * x) / (np.sqrt(2 * np.pi) * d)
+    return sparse.csr_matrix((w, (r, c)), shape=(nodes.size, src.size))
+
+
+def _smooth(values: np.ndarray, pu: np.ndarray, pv: np.ndarray, u: np.ndarray, v: np.ndarray, d: float, h: float) -> np.ndarray:
+    """f ⊛ G_d at the nodes u × v from samples of f on the lattice pu × pv (spacing h)."""
+    ku = _gauss_weights(u, pu, d, h)
+    kv = _gauss_weights(v, pv, d, h)
+    return np.asarray(kv @ (ku @ values.T).T)
+
+
+# --- quadrature rules -------------------------------------------------------------------------
+
+TOL = 1e-4
+"""Worst error of a rule on a unit step smoothed at the level's σ (sets the number of points)."""
+TRAP_STEP = 1.5
+"""Trapezoid spacing along a wide leftover axis, in σ of the level."""
+TRAP_SPAN = 5.5
+"""Trapezoid nodes cover ± this many leftover σ."""
+MAX_POINTS = 4097
+"""Most points along one axis; Gaussians needing more (eccentricity beyond ~500:1) go to the terraces."""
+
+
+def _step_error(rho: float, x: np.ndarray, w: np.ndarray) -> float:
+    """Worst error of the rule (x, w) for E[Φ(ρξ - c)] over offsets c (exact: Φ(-c/√(1+ρ²)))."""
+    c = np.linspace(-10.0, 10.0, 2001)
+    est = ndtr(rho * x[None, :] - c[:, None]) @ w
+    return float(np.abs(est - ndtr(-c / np.sqrt(1.0 + rho * rho))).max())
+
+
+def _gh_tables(tol: float, max_n: int = 12) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Gauss-Hermite nodes, normalised weights ((max_n+1, max_n), row n = the n-point rule) and
+    ``reach[n]``: the largest leftover ρ (in level σ) that n points integrate to ``tol``."""
+    x = np.zeros((max_n + 1, max_n))
+    w = np.zeros((max_n + 1, max_n))
+    reach = np.zeros(max_n + 1)
+    rhos = np.linspace(0.0, 2.0, 201)
+    for n in range(1, max_n + 1):
+        xn, wn = np.polynomial.hermite_e.hermegauss(n)
+        x[n, :n], w[n, :n] = xn, wn / wn.sum()
+        for rho in rhos[1:]:
+            if _step_error(rho, x[n, :n], w[n, :n]) > tol:
+                break
+            reach[n] = rho
+    return x, w, reach
+
+
+GH_X, GH_W, GH_REACH = _gh_tables(TOL)
+
+
+@nb.njit(cache=True, inline="always")
+def _rule(rho, xs, ws):
+    """Nodes (in units of the leftover σ times ρ, i.e. of the level σ) and weights of a rule for
+    E[f(ρ ξ)], ξ ~ N(0, 1): Gauss-Hermite while ρ is small, else the trapezoid rule. Returns the
+    count, or 0 when more than ``xs.size`` points would be needed."""
+    n_max = GH_REACH.shape[0] - 1
+    if rho <= GH_REACH[n_max]:
+        n = 1
+        while GH_REACH[n] < rho:
+            n += 1
+        for i in range(n):
+            xs[i] = rho * GH_X[n, i]
+            ws[i] = GH_W[n, i]
+        return n
+    m = int(np.ceil(2.0 * TRAP_SPAN * rho / TRAP_STEP)) | 1  # odd: a node at the centre
+    if m > xs.shape[0]:
+        return 0
+    dx = 2.0 * TRAP_SPAN * rho / (m - 1)
+    tot = 0.0
+    for i in range(m):
+        x = -TRAP_SPAN * rho + i * dx
+        xs[i] = x
+        ws[i] = np.exp(-0.5 * (x / rho) ** 2)
+        tot += ws[i]
+    for i in range(m):
+        ws[i] /= tot
+    return m
+
+
+# --- kernels ----------------------------------------------------------------------------------
+
+
+@nb.njit(cache=True, inline="always")
+def _bspline(coef, off, nu, nv, u0, v0, h, u, v):
+    """The cubic B-spline with coefficients ``coef[off:]`` (nv, nu) at pixel point (u, v); 0 off the lattice."""
+    x = (u - u0) / h
+    y = (v - v0) / h
+    i = int(np.floor(x))
+    j = int(np.floor(y))
+    if i < 1 or j < 1 or i + 2 >= nu or j + 2 >= nv:
+        return 0.0
+    fx = x - i
+    fy = y - j
+    gx = 1.0 - fx
+    gy = 1.0 - fy
+    wx0 = gx * gx * gx / 6.0
+    wx1 = (3.0 * fx * fx * fx - 6.0 * fx * fx + 4.0) / 6.0
+    wx3 = fx * fx * fx / 6.0
+    wx2 = 1.0 - wx0 - wx1 - wx3
+    wy0 = gy * gy * gy / 6.0
+    wy1 = (3.0 * fy * fy * fy - 6.0 * fy * fy + 4.0) / 6.0
+    wy3 = fy * fy * fy / 6.0
+    wy2 = 1.0 - wy0 - wy1 - wy3
+    p = off + (j - 1) * nu + (i - 1)
+    r0 = wx0 * coef[p] + wx1 * coef[p + 1] + wx2 * coef[p + 2] + wx3 * coef[p + 3]
+    p += nu
+    r1 = wx0 * coef[p] + wx1 * coef[p + 1] + wx2 * coef[p + 2] + wx3 * coef[p + 3]
+    p += nu
+    r2 = wx0 * coef[p] + wx1 * coef[p + 1] + wx2 * coef[p + 2] + wx3 * coef[p + 3]
+    p += nu
+    r3 = wx0 * coef[p] + wx1 * coef[p + 1] + wx2 * coef[p + 2] + wx3 * coef[p + 3]
+    return wy0 * r0 + wy1 * r1 + wy2 * r2 + wy3 * r3
+
+
+@nb.njit(cache=True, inline="always")
+def _phi(x):
+    return 0.5 * math.erfc(-x * 0.7071067811865476)
+
+
+@nb.njit(cache=True)
+def _window(values, u, v, s, wu):
+    """f_s(u, v) exactly: Σ_cells value · ΔΦ_u · ΔΦ_v over the cells within 6.5 s (+1) of the point."""
+    h, w = values.shape
+    reach = 5.5 * s + 1.0
+    i0 = max(int(np.floor(u - reach)), 0)
+    i1 = min(int(np.floor(u + reach)), w - 1)
+    j0 = max(int(np.floor(v - reach)), 0)
+    j1 = min(int(np.floor(v + reach)), h - 1)
+    if i1 < i0 or j1 < j0:
+        return 0.0
+    inv = 1.0 / s
+    prev = _phi((i0 - u) * inv)
+    for i in range(i0, i1 + 1):
+        nxt = _phi((i + 1 - u) * inv)
+        wu[i - i0] = nxt - prev
+        prev = nxt
+    acc = 0.0
+    prev = _phi((j0 - v) * inv)
+    for j in range(j0, j1 + 1):
+        nxt = _phi((j + 1 - v) * inv)
+        wv = nxt - prev
+        prev = nxt
+        if wv == 0.0:
+            continue
+        row = 0.0
+        for i in range(i0, i1 + 1):
+            row += values[j, i] * wu[i - i0]
+        acc += wv * row
+    return acc
+
+
+@nb.njit(cache=True)
+def _one(values, coef, scale, step, u0, v0, nu, nv, offset, uc, vc, cuu, cuv, cvv, xs1, ws1, xs2, ws2, wu):
+    """∫ G r for one Gaussian in pixel units (mean (uc, vc), covariance [[cuu, cuv], [cuv, cvv]] cells²).
+
+    Returns (value, look-ups), look-ups 0 when the Gaussian is too eccentric for the rules."""
+    m = 0.5 * (cuu + cvv)
+    dd = 0.5 * (cuu - cvv)
+    rad = np.sqrt(dd * dd + cuv * cuv)
+    lam1 = m + rad
+    lam2 = max(m - rad, 0.0)
+    th = 0.5 * np.arctan2(2.0 * cuv, cuu - cvv)
+    e1u = np.cos(th)
+    e1v = np.sin(th)
+    if lam2 < scale[0] * scale[0]:
+        # Finer than the pyramid: smooth at s = the smaller σ exactly, average along the major axis.
+        s = np.sqrt(lam2)
+        n1 = _rule(np.sqrt(lam1 - lam2) / s, xs1, ws1)
+        acc = 0.0
+        for i in range(n1):
+            a = xs1[i] * s
+            acc += ws1[i] * _window(values, uc + a * e1u, vc + a * e1v, s, wu)
+        return acc, n1
+    k = int(np.floor(np.log(np.sqrt(lam2) / scale[0]) / np.log(RATIO) + 1e-9))
+    k = min(max(k, 0), scale.shape[0] - 1)
+    s = scale[k]
+    n1 = _rule(np.sqrt(max(lam1 - s * s, 0.0)) / s, xs1, ws1)
+    n2 = _rule(np.sqrt(max(lam2 - s * s, 0.0)) / s, xs2, ws2)
+    acc = 0.0
+    off = offset[k]
+    for i in range(n1):
+        a = xs1[i] * s
+        pu = uc + a * e1u
+        pv = vc + a * e1v
+        row = 0.0
+        for j in range(n2):
+            b = xs2[j] * s
+            row += ws2[j] * _bspline(coef, off, nu[k], nv[k], u0[k], v0[k], step[k], pu - b * e1v, pv + b * e1u)
+        acc += ws1[i] * row
+    return acc, n1 * n2
+
+
+@nb.njit(cache=True, parallel=True)
+def _kernel(values, coef, scale, step, u0, v0, nu, nv, offset, uc, vc, cuu, cuv, cvv, out, counts):
+    chunk = 256
+    n_chunks = (uc.shape[0] + chunk - 1) // chunk
+    for c in nb.prange(n_chunks):
+        xs1 = np.empty(MAX_POINTS)
+        ws1 = np.empty(MAX_POINTS)
+        xs2 = np.empty(MAX_POINTS)
+        ws2 = np.empty(MAX_POINTS)
+        wu = np.empty(int(6.5 * 2 * scale[0]) + 8)
+        for n in range(c * chunk, min((c + 1) * chunk, uc.shape[0])):
+            out[n], counts[n] = _one(
+                values, coef, scale, step, u0, v0, nu, nv, offset, uc[n], vc[n], cuu[n], cuv[n], cvv[n], xs1, ws1, xs2, ws2, wu
+            )
+
+
+_PYRAMIDS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def pyramid(prior: TerrainPrior, squared: bool) -> Pyramid:
+    """The prior's pyramid of r (or r²), built once per prior object and kept while it lives."""
+    per_prior = _PYRAMIDS.setdefault(prior, {})
+    if squared not in per_prior:
+        values = np.asarray(prior.density, dtype=np.float64)
+        per_prior[squared] = Pyramid(values * values if squared else values)
+    return per_prior[squared]
+
+
+def integrate_pixels(
+    prior: TerrainPrior, uc: np.ndarray, vc: np.ndarray, cuu: np.ndarray, cuv: np.ndarray, cvv: np.ndarray, squared: bool
+) -> tuple[np.ndarray, np.ndarray]:
+    """∫ G r dy (per m², or ∫ G r² per m⁴) for Gaussians in pixel units (see :func:`tracker.terrace.pixel_gaussians`).
+
+    Returns (values, look-ups per integral); look-ups 0 marks Gaussians left to the caller
+    (eccentricity beyond ~500:1), whose values are undefined.
+    """
+    pyr = pyramid(prior, squared)
+    smin = np.sqrt(np.maximum(0.5 * (cuu + cvv) - np.sqrt(0.25 * (cuu - cvv) ** 2 + cuv * cuv), 0.0))
+    pyr.ensure(float(smin.max(initial=0.0)))
+    out = np.empty(uc.shape[0])
+    counts = np.empty(uc.shape[0], dtype=np.int64)
+    _kernel(pyr.field, pyr.coef, pyr.scale, pyr.step, pyr.u0, pyr.v0, pyr.nu, pyr.nv, pyr.offset, uc, vc, cuu, cuv, cvv, out, counts)
+    return out, counts
