@@ -249,20 +249,42 @@ def _bspline(coef, off, nu, nv, u0, v0, h, u, v):
     return wy0 * r0 + wy1 * r1 + wy2 * r2 + wy3 * r3
 
 
+PHI_STEP = 1.0 / 256.0
+PHI_EDGE = 8.5
+"""Φ is tabulated on [-PHI_EDGE, PHI_EDGE] every PHI_STEP and taken as 0 or 1 beyond (Φ(-8.5) = 1e-17)."""
+
+
+def _phi_table() -> np.ndarray:
+    """(2, M): Φ and φ at the table's nodes, for cubic Hermite interpolation (error < 3e-13)."""
+    x = np.arange(-PHI_EDGE, PHI_EDGE + PHI_STEP / 2, PHI_STEP)
+    return np.vstack([ndtr(x), np.exp(-0.5 * x * x) / np.sqrt(2.0 * np.pi)])
+
+
+PHI_TABLE = _phi_table()
+
+
 @nb.njit(cache=True, inline="always")
-def _phi(x):
-    """Φ(x) with relative error < 1.2e-7 in both tails (Chebyshev fit of erfc, Numerical Recipes
-    §6.2): 2-3x faster than libm's erfc, and ΔΦ stays accurate far out where cells weigh ~1e-20."""
-    z = abs(x) * 0.7071067811865476
-    t = 1.0 / (1.0 + 0.5 * z)
-    poly = -1.26551223 + t * (1.00002368 + t * (0.37409196 + t * (0.09678418 + t * (-0.18628806 + t * (
-        0.27886807 + t * (-1.13520398 + t * (1.48851587 + t * (-0.82215223 + t * 0.17087277))))))))
-    tail = 0.5 * t * np.exp(-z * z + poly)
-    return tail if x < 0.0 else 1.0 - tail
+def _phi(tab, x):
+    """Φ(x) from the table: cubic Hermite on values and slopes, 3-4x faster than libm's erfc."""
+    if x <= -PHI_EDGE:
+        return 0.0
+    if x >= PHI_EDGE:
+        return 1.0
+    y = (x + PHI_EDGE) / PHI_STEP
+    i = min(int(y), tab.shape[1] - 2)
+    t = y - i
+    t2 = t * t
+    t3 = t2 * t
+    return (
+        (2.0 * t3 - 3.0 * t2 + 1.0) * tab[0, i]
+        + (t3 - 2.0 * t2 + t) * PHI_STEP * tab[1, i]
+        + (-2.0 * t3 + 3.0 * t2) * tab[0, i + 1]
+        + (t3 - t2) * PHI_STEP * tab[1, i + 1]
+    )
 
 
 @nb.njit(cache=True)
-def _window(values, u, v, s, wu):
+def _window(values, tab, u, v, s, wu):
     """f_s(u, v) exactly: Σ_cells value · ΔΦ_u · ΔΦ_v over the cells within 5 s (+1) of the point."""
     h, w = values.shape
     reach = 5.0 * s + 1.0
@@ -273,15 +295,15 @@ def _window(values, u, v, s, wu):
     if i1 < i0 or j1 < j0:
         return 0.0
     inv = 1.0 / s
-    prev = _phi((i0 - u) * inv)
+    prev = _phi(tab, (i0 - u) * inv)
     for i in range(i0, i1 + 1):
-        nxt = _phi((i + 1 - u) * inv)
+        nxt = _phi(tab, (i + 1 - u) * inv)
         wu[i - i0] = nxt - prev
         prev = nxt
     acc = 0.0
-    prev = _phi((j0 - v) * inv)
+    prev = _phi(tab, (j0 - v) * inv)
     for j in range(j0, j1 + 1):
-        nxt = _phi((j + 1 - v) * inv)
+        nxt = _phi(tab, (j + 1 - v) * inv)
         wv = nxt - prev
         prev = nxt
         if wv == 0.0:
@@ -294,7 +316,7 @@ def _window(values, u, v, s, wu):
 
 
 @nb.njit(cache=True)
-def _one(values, coef, scale, step, u0, v0, nu, nv, offset, uc, vc, cuu, cuv, cvv, xs1, ws1, xs2, ws2, wu):
+def _one(values, tab, coef, scale, step, u0, v0, nu, nv, offset, uc, vc, cuu, cuv, cvv, xs1, ws1, xs2, ws2, wu):
     """∫ G r for one Gaussian in pixel units (mean (uc, vc), covariance [[cuu, cuv], [cuv, cvv]] cells²).
 
     Returns (value, look-ups), look-ups 0 when the Gaussian is too eccentric for the rules."""
@@ -313,7 +335,7 @@ def _one(values, coef, scale, step, u0, v0, nu, nv, offset, uc, vc, cuu, cuv, cv
         acc = 0.0
         for i in range(n1):
             a = xs1[i] * s
-            acc += ws1[i] * _window(values, uc + a * e1u, vc + a * e1v, s, wu)
+            acc += ws1[i] * _window(values, tab, uc + a * e1u, vc + a * e1v, s, wu)
         return acc, n1
     k = int(np.floor(np.log(np.sqrt(lam2) / scale[0]) / np.log(RATIO) + 1e-9))
     k = min(max(k, 0), scale.shape[0] - 1)
@@ -335,10 +357,14 @@ def _one(values, coef, scale, step, u0, v0, nu, nv, offset, uc, vc, cuu, cuv, cv
 
 
 @nb.njit(cache=True, parallel=True)
-def _kernel(values, coef, scale, step, u0, v0, nu, nv, offset, uc, vc, cuu, cuv, cvv, out, counts, n_threads):
+def _kernel(values, tab, coef, scale, step, u0, v0, nu, nv, offset, uc, vc, cuu, cuv, cvv, order, out, counts, n_threads):
+    """Gaussian ``order[i]`` for i = 0..N-1, in 256-Gaussian chunks; results go to its own index.
+
+    Each chunk first copies its Gaussians out of the inputs (reading them through ``order`` inside
+    the loop costs 20 % more: five scattered reads per Gaussian)."""
     chunk = 256
-    n_chunks = (uc.shape[0] + chunk - 1) // chunk
-    # Costs vary along the (level-sorted) batch; deal chunks round-robin so the threads' static
+    n_chunks = (order.shape[0] + chunk - 1) // chunk
+    # Costs vary along the (level-sorted) order; deal chunks round-robin so the threads' static
     # shares of the range each hold every part of it.
     per = (n_chunks + n_threads - 1) // n_threads
     for q in nb.prange(per * n_threads):
@@ -349,11 +375,41 @@ def _kernel(values, coef, scale, step, u0, v0, nu, nv, offset, uc, vc, cuu, cuv,
         ws1 = np.empty(MAX_POINTS)
         xs2 = np.empty(MAX_POINTS)
         ws2 = np.empty(MAX_POINTS)
-        wu = np.empty(int(6.5 * 2 * scale[0]) + 8)
-        for n in range(c * chunk, min((c + 1) * chunk, uc.shape[0])):
-            out[n], counts[n] = _one(
-                values, coef, scale, step, u0, v0, nu, nv, offset, uc[n], vc[n], cuu[n], cuv[n], cvv[n], xs1, ws1, xs2, ws2, wu
+        wu = np.empty(int(5.0 * 2 * scale[0]) + 8)
+        lo = c * chunk
+        hi = min(lo + chunk, order.shape[0])
+        g = np.empty((hi - lo, 5))
+        for i in range(lo, hi):
+            n = order[i]
+            g[i - lo, 0] = uc[n]
+            g[i - lo, 1] = vc[n]
+            g[i - lo, 2] = cuu[n]
+            g[i - lo, 3] = cuv[n]
+            g[i - lo, 4] = cvv[n]
+        for i in range(lo, hi):
+            r = g[i - lo]
+            out[order[i]], counts[order[i]] = _one(
+                values, tab, coef, scale, step, u0, v0, nu, nv, offset, r[0], r[1], r[2], r[3], r[4], xs1, ws1, xs2, ws2, wu
             )
+
+
+@nb.njit(cache=True, parallel=True)
+def _order_keys(uc, vc, cuu, cuv, cvv, h, w, tile, smin_out, keys):
+    """Smaller σ of each Gaussian (cells) and its sort key: pyramid level, then ``tile``-cell block."""
+    nbu = w // tile + 1
+    nbv = h // tile + 1
+    inv_log = 1.0 / np.log(RATIO)
+    for n in nb.prange(uc.shape[0]):
+        m = 0.5 * (cuu[n] + cvv[n])
+        dd = 0.5 * (cuu[n] - cvv[n])
+        smin = np.sqrt(max(m - np.sqrt(dd * dd + cuv[n] * cuv[n]), 0.0))
+        smin_out[n] = smin
+        level = 0
+        if smin >= S0:
+            level = min(int(np.log(smin / S0) * inv_log) + 1, 1023)
+        tu = int(min(max(uc[n], 0.0), w - 1.0)) // tile
+        tv = int(min(max(vc[n], 0.0), h - 1.0)) // tile
+        keys[n] = (level * nbv + tv) * nbu + tu
 
 
 _PYRAMIDS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
@@ -377,29 +433,21 @@ def integrate_pixels(
     (eccentricity beyond ~500:1), whose values are undefined.
     """
     pyr = pyramid(prior, squared)
-    smin = np.sqrt(np.maximum(0.5 * (cuu + cvv) - np.sqrt(0.25 * (cuu - cvv) ** 2 + cuv * cuv), 0.0))
+    n = uc.shape[0]
+    smin = np.empty(n)
+    keys = np.empty(n, dtype=np.int64)
+    h, w = prior.grid.shape
+    _order_keys(uc, vc, cuu, cuv, cvv, h, w, ORDER_TILE, smin, keys)
     pyr.ensure(float(smin.max(initial=0.0)))
-    order = _locality_order(prior.grid.shape, uc, vc, smin)
-    out = np.empty(uc.shape[0])
-    counts = np.empty(uc.shape[0], dtype=np.int64)
-    args = [a[order] for a in (uc, vc, cuu, cuv, cvv)]
-    _kernel(pyr.field, pyr.coef, pyr.scale, pyr.step, pyr.u0, pyr.v0, pyr.nu, pyr.nv, pyr.offset, *args, out, counts, nb.get_num_threads())
-    values = np.empty_like(out)
-    values[order] = out
-    looks = np.empty_like(counts)
-    looks[order] = counts
-    return values, looks
+    out = np.empty(n)
+    counts = np.empty(n, dtype=np.int64)
+    args = (pyr.field, PHI_TABLE, pyr.coef, pyr.scale, pyr.step, pyr.u0, pyr.v0, pyr.nu, pyr.nv, pyr.offset)
+    _kernel(*args, uc, vc, cuu, cuv, cvv, np.argsort(keys), out, counts, nb.get_num_threads())
+    return out, counts
 
 
-def _locality_order(shape: tuple[int, int], uc: np.ndarray, vc: np.ndarray, smin: np.ndarray, tile: int = 16) -> np.ndarray:
-    """Gaussians grouped by pyramid level, then by the ``tile``-cell block of their centre.
-
-    The kernel waits on memory when a level is larger than the cache; in this order consecutive
-    look-ups fall on nearby lattice nodes (12-15 % fewer CPU-seconds than a random order on a
-    2,000 x 2,000 grid, 35 % fewer than sorting by block first).
-    """
-    h, w = shape
-    level = np.clip(np.floor(np.log(np.maximum(smin, 1e-300) / S0) / np.log(RATIO)) + 1, 0, 1023).astype(np.int64)
-    tu = (np.clip(uc, 0, w - 1) // tile).astype(np.int64)
-    tv = (np.clip(vc, 0, h - 1) // tile).astype(np.int64)
-    return np.argsort((level * (h // tile + 1) + tv) * (w // tile + 1) + tu)
+ORDER_TILE = 16
+"""Cells per block side in the kernel's order. The kernel waits on memory when a level is larger
+than the cache; taking the batch by pyramid level, then by block of its centre, makes consecutive
+look-ups fall on nearby lattice nodes (2.3x fewer CPU-seconds than a random order on a 2,000 x
+2,000 grid; 15 % fewer than block first, then spread)."""

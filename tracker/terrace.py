@@ -455,11 +455,16 @@ def integrate(
     rest = np.arange(means.shape[0])
     if method == "scalespace" and rest.size:
         h, w = prior.grid.shape
-        near = np.flatnonzero(near_grid(uc, vc, cuu, cuv, cvv, float(w), float(h), NEAR_RHO, NEAR_SPREAD))
-        values, counts = scalespace.integrate_pixels(prior, *(a[near] for a in (uc, vc, cuu, cuv, cvv)), squared)
-        done = counts > 0
-        result[near[done]] = values[done]
-        rest = np.setdiff1d(rest, near[done], assume_unique=True)
+        handled = near_grid(uc, vc, cuu, cuv, cvv, float(w), float(h), NEAR_RHO, NEAR_SPREAD)
+        near = None if handled.all() else np.flatnonzero(handled)
+        px = (uc, vc, cuu, cuv, cvv) if near is None else tuple(a[near] for a in (uc, vc, cuu, cuv, cvv))
+        values, counts = scalespace.integrate_pixels(prior, *px, squared)
+        if near is None:
+            result, handled = values, counts > 0
+        else:
+            result[near] = values
+            handled[near] = counts > 0
+        rest = np.flatnonzero(~handled)
     if rest.size:
         result[rest] = _terraces(prior, *(a[rest] for a in (uc, vc, cuu, cuv, cvv)), squared, n_terraces, n_strips, mass, shear, scheme)
     return result
