@@ -34,6 +34,9 @@ from scipy.special import ndtr
 
 from pipeline.prior import TerrainPrior
 
+FAST = {"nsz", "arcp", "contract", "afn", "reassoc"}
+"""LLVM fast-math flags for the kernels: fused multiply-adds and reassociation (~30 % faster),
+but not 'no NaNs/infinities' (the checks in :func:`_one` and :func:`_phi` must stay)."""
 S0 = 1.0
 """Finest smoothing scale, cells: Gaussians with a smaller σ go to the terraces."""
 RATIO = 2.0**0.25
@@ -185,7 +188,7 @@ def _gh_tables(tol: float, max_n: int = 12) -> tuple[np.ndarray, np.ndarray, np.
 GH_X, GH_W, GH_REACH = _gh_tables(TOL)
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
 def _rule(rho, xs, ws):
     """Nodes (in units of the leftover σ times ρ, i.e. of the level σ) and weights of a rule for
     E[f(ρ ξ)], ξ ~ N(0, 1): Gauss-Hermite while ρ is small, else the trapezoid rule. Returns the
@@ -203,12 +206,18 @@ def _rule(rho, xs, ws):
     if m > xs.shape[0]:
         return 0
     dx = 2.0 * TRAP_SPAN * rho / (m - 1)
+    # e^{-x²/2ρ²} at equally spaced x by its ratio recurrence: two exponentials, not m.
+    step = dx / rho
+    w = np.exp(-0.5 * TRAP_SPAN * TRAP_SPAN)
+    ratio = np.exp(TRAP_SPAN * step - 0.5 * step * step)
+    shrink = np.exp(-step * step)
     tot = 0.0
     for i in range(m):
-        x = -TRAP_SPAN * rho + i * dx
-        xs[i] = x
-        ws[i] = np.exp(-0.5 * (x / rho) ** 2)
-        tot += ws[i]
+        xs[i] = -TRAP_SPAN * rho + i * dx
+        ws[i] = w
+        tot += w
+        w *= ratio
+        ratio *= shrink
     for i in range(m):
         ws[i] /= tot
     return m
@@ -217,7 +226,7 @@ def _rule(rho, xs, ws):
 # --- kernels ----------------------------------------------------------------------------------
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
 def _bspline(coef, off, nu, nv, u0, v0, h, u, v):
     """The cubic B-spline with coefficients ``coef[off:]`` (nv, nu) at pixel point (u, v); 0 off the lattice."""
     x = (u - u0) / h
@@ -263,7 +272,7 @@ def _phi_table() -> np.ndarray:
 PHI_TABLE = _phi_table()
 
 
-@nb.njit(cache=True, inline="always")
+@nb.njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
 def _phi(tab, x):
     """Φ(x) from the table: cubic Hermite on values and slopes, 3-4x faster than libm's erfc."""
     if x <= -PHI_EDGE:
@@ -283,7 +292,7 @@ def _phi(tab, x):
     )
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy", fastmath=FAST)
 def _window(values, tab, u, v, s, wu):
     """f_s(u, v) exactly: Σ_cells value · ΔΦ_u · ΔΦ_v over the cells within 5 s (+1) of the point."""
     h, w = values.shape
@@ -315,7 +324,7 @@ def _window(values, tab, u, v, s, wu):
     return acc
 
 
-@nb.njit(cache=True)
+@nb.njit(cache=True, error_model="numpy", fastmath=FAST)
 def _one(values, tab, coef, scale, step, u0, v0, nu, nv, offset, uc, vc, cuu, cuv, cvv, xs1, ws1, xs2, ws2, wu):
     """∫ G r for one Gaussian in pixel units (mean (uc, vc), covariance [[cuu, cuv], [cuv, cvv]] cells²).
 
@@ -356,7 +365,7 @@ def _one(values, tab, coef, scale, step, u0, v0, nu, nv, offset, uc, vc, cuu, cu
     return acc, n1 * n2
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
 def _kernel(values, tab, coef, scale, step, u0, v0, nu, nv, offset, uc, vc, cuu, cuv, cvv, order, out, counts, n_threads):
     """Gaussian ``order[i]`` for i = 0..N-1, in 256-Gaussian chunks; results go to its own index.
 
@@ -393,11 +402,20 @@ def _kernel(values, tab, coef, scale, step, u0, v0, nu, nv, offset, uc, vc, cuu,
             )
 
 
-@nb.njit(cache=True, parallel=True)
+@nb.njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
+def _spread_bits(x):
+    """The low 16 bits of x spread to the even bits of a 32-bit word (for a Morton code)."""
+    x &= 0xFFFF
+    x = (x | (x << 8)) & 0x00FF00FF
+    x = (x | (x << 4)) & 0x0F0F0F0F
+    x = (x | (x << 2)) & 0x33333333
+    return (x | (x << 1)) & 0x55555555
+
+
+@nb.njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
 def _order_keys(uc, vc, cuu, cuv, cvv, h, w, tile, smin_out, keys):
-    """Smaller σ of each Gaussian (cells) and its sort key: pyramid level, then ``tile``-cell block."""
-    nbu = w // tile + 1
-    nbv = h // tile + 1
+    """Smaller σ of each Gaussian (cells) and its sort key: pyramid level, then the Morton code of
+    its centre's block of ``tile`` lattice nodes of that level."""
     inv_log = 1.0 / np.log(RATIO)
     for n in nb.prange(uc.shape[0]):
         m = 0.5 * (cuu[n] + cvv[n])
@@ -405,11 +423,13 @@ def _order_keys(uc, vc, cuu, cuv, cvv, h, w, tile, smin_out, keys):
         smin = np.sqrt(max(m - np.sqrt(dd * dd + cuv[n] * cuv[n]), 0.0))
         smin_out[n] = smin
         level = 0
+        size = tile * S0 / GAMMA
         if smin >= S0:
             level = min(int(np.log(smin / S0) * inv_log) + 1, 1023)
-        tu = int(min(max(uc[n], 0.0), w - 1.0)) // tile
-        tv = int(min(max(vc[n], 0.0), h - 1.0)) // tile
-        keys[n] = (level * nbv + tv) * nbu + tu
+            size = tile * S0 * RATIO ** (level - 1) / GAMMA
+        tu = int(min(max(uc[n], 0.0), w - 1.0) / size)
+        tv = int(min(max(vc[n], 0.0), h - 1.0) / size)
+        keys[n] = (level << 32) | (_spread_bits(tv) << 1) | _spread_bits(tu)
 
 
 _PYRAMIDS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
@@ -446,8 +466,8 @@ def integrate_pixels(
     return out, counts
 
 
-ORDER_TILE = 16
-"""Cells per block side in the kernel's order. The kernel waits on memory when a level is larger
+ORDER_TILE = 32
+"""Lattice nodes per block side in the kernel's order. The kernel waits on memory when a level is larger
 than the cache; taking the batch by pyramid level, then by block of its centre, makes consecutive
 look-ups fall on nearby lattice nodes (2.3x fewer CPU-seconds than a random order on a 2,000 x
 2,000 grid; 15 % fewer than block first, then spread)."""
