@@ -23,8 +23,9 @@ Units: everything here is in pixel units (u = column, v = row, cells); :func:`in
 
 from __future__ import annotations
 
+import threading
 import weakref
-from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numba as nb
 import numpy as np
@@ -47,60 +48,74 @@ PAD = 7.0
 """Lattice margin beyond the grid, in σ of the level."""
 
 
-@dataclass
-class Pyramid:
-    """Cubic B-spline coefficients of f_{s_k} = r ⊛ G_{s_k} for k = 0..L-1, flattened for the kernel.
+class Packed(NamedTuple):
+    """A pyramid's levels as the kernel reads them: per level ``scale`` s_k and lattice ``step``
+    (cells), ``u0``/``v0`` the pixel coordinates of node (0, 0), node counts ``nu``/``nv``, and
+    ``offset`` into ``coef``, the cubic B-spline coefficients of all levels (float32, row-major)."""
 
-    Per level: ``scale`` s_k (cells), ``step`` lattice spacing (cells), ``u0``/``v0`` pixel
-    coordinates of node (0, 0), ``nu``/``nv`` node counts, ``offset`` into ``coef`` (row-major v, u).
+    scale: np.ndarray
+    step: np.ndarray
+    u0: np.ndarray
+    v0: np.ndarray
+    nu: np.ndarray
+    nv: np.ndarray
+    offset: np.ndarray
+    coef: np.ndarray
+
+
+class Pyramid:
+    """f_{s_k} = r ⊛ G_{s_k} for s_k = S0·RATIO^k, k = 0..L-1, L growing on demand (thread-safe).
+
+    ``field`` is the (H, W) array of the prior's values per cell (density or density²).
     """
 
-    field: np.ndarray  # (H, W) the prior's values per cell (density or density²)
-    scale: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    step: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    u0: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    v0: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    nu: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-    nv: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-    offset: np.ndarray = field(default_factory=lambda: np.zeros(1, np.int64))
-    coef: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))
-    _values: list = field(default_factory=list)  # per level (nv, nu) float64 samples, for the next level
+    def __init__(self, field: np.ndarray) -> None:
+        self.field = np.ascontiguousarray(field, dtype=np.float64)
+        self.packed = Packed(*(np.zeros(0) for _ in range(4)), *(np.zeros(k, np.int64) for k in (0, 0, 1)), np.zeros(0, np.float32))
+        self._top: tuple[float, float, float, np.ndarray] | None = None  # (s, step, origin, values) of the top level
+        self._lock = threading.Lock()
 
-    def ensure(self, top_scale: float) -> None:
-        """Build levels until the coarsest reaches ``top_scale`` cells (at least level 0)."""
-        new = []
-        while self.scale.size + len(new) == 0 or (new[-1][0] if new else self.scale[-1]) < top_scale:
-            k = self.scale.size + len(new)
-            s = S0 * RATIO**k
-            h = s / GAMMA
-            height, width = self.field.shape
-            pad = PAD * s + 2.0 * h
-            nu = int(np.ceil((width + 2 * pad) / h)) + 1
-            nv = int(np.ceil((height + 2 * pad) / h)) + 1
-            u = -pad + h * np.arange(nu)
-            v = -pad + h * np.arange(nv)
-            if k == 0:
-                values = _exact_level(self.field, u, v, s)
-            else:
-                prev = new[-1] if new else (self.scale[-1], self.step[-1], self.u0[-1], self.v0[-1], self._values[-1])
-                ps, ph, pu0, pv0, pvals = prev[0], prev[1], prev[2], prev[3], prev[4]
-                d = np.sqrt(s * s - ps * ps)
-                pu = pu0 + ph * np.arange(pvals.shape[1])
-                pv = pv0 + ph * np.arange(pvals.shape[0])
-                values = _smooth(pvals, pu, pv, u, v, d, ph)
-            new.append((s, h, u[0], v[0], values))
-        if not new:
-            return
-        coefs = [spline_filter(vals, order=3, mode="mirror").astype(np.float32).ravel() for *_, vals in new]
-        self.scale = np.append(self.scale, [n[0] for n in new])
-        self.step = np.append(self.step, [n[1] for n in new])
-        self.u0 = np.append(self.u0, [n[2] for n in new])
-        self.v0 = np.append(self.v0, [n[3] for n in new])
-        self.nu = np.append(self.nu, [n[4].shape[1] for n in new]).astype(np.int64)
-        self.nv = np.append(self.nv, [n[4].shape[0] for n in new]).astype(np.int64)
-        self.offset = np.append(self.offset, self.offset[-1] + np.cumsum([c.size for c in coefs])).astype(np.int64)
-        self.coef = np.concatenate([self.coef, *coefs])
-        self._values = [*self._values, *(n[4] for n in new)][-1:]  # only the top level seeds the next
+    def levels(self, top_scale: float) -> Packed:
+        """The levels up to the first with s_k >= ``top_scale`` cells (at least level 0), built if missing.
+
+        Returns a consistent snapshot: later growth replaces, never changes, the arrays it holds."""
+        with self._lock:
+            p = self.packed
+            if p.scale.size and p.scale[-1] >= top_scale:
+                return p
+            new = []
+            k = p.scale.size
+            while True:
+                s = S0 * RATIO**k
+                h = s / GAMMA
+                height, width = self.field.shape
+                pad = PAD * s + 2.0 * h
+                u = -pad + h * np.arange(int(np.ceil((width + 2 * pad) / h)) + 1)
+                v = -pad + h * np.arange(int(np.ceil((height + 2 * pad) / h)) + 1)
+                if self._top is None:
+                    values = _exact_level(self.field, u, v, s)
+                else:
+                    ps, ph, po, pvals = self._top
+                    pu = po + ph * np.arange(pvals.shape[1])
+                    pv = po + ph * np.arange(pvals.shape[0])
+                    values = _smooth(pvals, pu, pv, u, v, np.sqrt(s * s - ps * ps), ph)
+                self._top = (s, h, -pad, values)
+                new.append((s, h, -pad, values.shape, spline_filter(values, order=3, mode="mirror").astype(np.float32).ravel()))
+                k += 1
+                if s >= top_scale:
+                    break
+            sizes = np.cumsum([n[4].size for n in new])
+            self.packed = Packed(
+                np.append(p.scale, [n[0] for n in new]),
+                np.append(p.step, [n[1] for n in new]),
+                np.append(p.u0, [n[2] for n in new]),
+                np.append(p.v0, [n[2] for n in new]),
+                np.append(p.nu, [n[3][1] for n in new]).astype(np.int64),
+                np.append(p.nv, [n[3][0] for n in new]).astype(np.int64),
+                np.append(p.offset, p.offset[-1] + sizes).astype(np.int64),
+                np.concatenate([p.coef, *(n[4] for n in new)]),
+            )
+            return self.packed
 
 
 def _box_weights(nodes: np.ndarray, n_cells: int, s: float) -> sparse.csr_matrix:
@@ -433,15 +448,17 @@ def _order_keys(uc, vc, cuu, cuv, cvv, h, w, tile, smin_out, keys):
 
 
 _PYRAMIDS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+_PYRAMIDS_LOCK = threading.Lock()
 
 
 def pyramid(prior: TerrainPrior, squared: bool) -> Pyramid:
-    """The prior's pyramid of r (or r²), built once per prior object and kept while it lives."""
-    per_prior = _PYRAMIDS.setdefault(prior, {})
-    if squared not in per_prior:
-        values = np.asarray(prior.density, dtype=np.float64)
-        per_prior[squared] = Pyramid(values * values if squared else values)
-    return per_prior[squared]
+    """The prior's pyramid of r (or r²), made once per prior object and kept while it lives."""
+    with _PYRAMIDS_LOCK:
+        per_prior = _PYRAMIDS.setdefault(prior, {})
+        if squared not in per_prior:
+            values = np.asarray(prior.density, dtype=np.float64)
+            per_prior[squared] = Pyramid(values * values if squared else values)
+        return per_prior[squared]
 
 
 def integrate_pixels(
@@ -458,10 +475,10 @@ def integrate_pixels(
     keys = np.empty(n, dtype=np.int64)
     h, w = prior.grid.shape
     _order_keys(uc, vc, cuu, cuv, cvv, h, w, ORDER_TILE, smin, keys)
-    pyr.ensure(float(smin.max(initial=0.0)))
+    p = pyr.levels(float(smin.max(initial=0.0)))
     out = np.empty(n)
     counts = np.empty(n, dtype=np.int64)
-    args = (pyr.field, PHI_TABLE, pyr.coef, pyr.scale, pyr.step, pyr.u0, pyr.v0, pyr.nu, pyr.nv, pyr.offset)
+    args = (pyr.field, PHI_TABLE, p.coef, p.scale, p.step, p.u0, p.v0, p.nu, p.nv, p.offset)
     _kernel(*args, uc, vc, cuu, cuv, cvv, np.argsort(keys), out, counts, nb.get_num_threads())
     return out, counts
 

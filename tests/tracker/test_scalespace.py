@@ -7,13 +7,27 @@ dense reference (tracker.reference) for the hand-over to the terraces.
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import pytest
+from affine import Affine
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.special import ndtr
 
-from tests.tracker.test_terrace import CELL, GRID, ROUGH, H, W, rough_field
+from pipeline.grid import Grid
+from pipeline.prior import TerrainPrior
+from tests.tracker.test_terrace import (
+    CELL,
+    GRID,
+    ROUGH,
+    H,
+    W,
+    gaussian,
+    random_gaussians,
+    rough_field,
+)
 from tracker import scalespace
 from tracker.reference import reference_integrate
 from tracker.terrace import integrate, pixel_gaussians
@@ -26,8 +40,8 @@ def smoothed(values: np.ndarray, u: np.ndarray, v: np.ndarray, s: float) -> np.n
     return np.einsum("nj,ji,ni->n", wv, values, wu)
 
 
-def spline_at(pyr: scalespace.Pyramid, k: int, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    args = (pyr.coef, pyr.offset[k], pyr.nu[k], pyr.nv[k], pyr.u0[k], pyr.v0[k], pyr.step[k])
+def spline_at(p: scalespace.Packed, k: int, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    args = (p.coef, p.offset[k], p.nu[k], p.nv[k], p.u0[k], p.v0[k], p.step[k])
     return np.array([scalespace._bspline(*args, a, b) for a, b in zip(u, v, strict=True)])
 
 
@@ -35,28 +49,56 @@ def test_every_level_matches_the_direct_smoothing() -> None:
     """Level 0 is exact on cells, the others come by recursion; all agree with the direct sum."""
     field = rough_field(seed=3, shape=(40, 56))
     pyr = scalespace.Pyramid(field)
-    pyr.ensure(60.0)
-    assert pyr.scale[-1] >= 60.0 and np.allclose(np.diff(np.log(pyr.scale)), np.log(scalespace.RATIO))
+    p = pyr.levels(60.0)
+    assert p.scale[-1] >= 60.0 and np.allclose(np.diff(np.log(p.scale)), np.log(scalespace.RATIO))
     rng = np.random.default_rng(0)
-    for k in range(pyr.scale.size):
-        s = pyr.scale[k]
+    for k in range(p.scale.size):
+        s = p.scale[k]
         u = rng.uniform(-3 * s, 56 + 3 * s, 60)
         v = rng.uniform(-3 * s, 40 + 3 * s, 60)
         exact = smoothed(field, u, v, s)
         # cubic B-spline on a lattice of s/2: ~1e-4 of the field's jumps, which reach its maximum
-        assert np.abs(spline_at(pyr, k, u, v) - exact).max() <= 3e-4 * field.max(), f"level {k}, s = {s:.2f}"
+        assert np.abs(spline_at(p, k, u, v) - exact).max() <= 3e-4 * field.max(), f"level {k}, s = {s:.2f}"
 
 
 def test_levels_are_added_on_demand_and_kept() -> None:
-    pyr = scalespace.pyramid(ROUGH, squared=False)
-    assert pyr is scalespace.pyramid(ROUGH, squared=False)
-    assert pyr is not scalespace.pyramid(ROUGH, squared=True)
-    pyr.ensure(5.0)
-    before = pyr.coef[: pyr.offset[pyr.scale.size]].copy()
-    n = pyr.scale.size
-    pyr.ensure(50.0)
-    assert pyr.scale.size > n
-    np.testing.assert_array_equal(pyr.coef[: before.size], before)
+    prior = TerrainPrior.from_array(rough_field(seed=5), GRID)
+    pyr = scalespace.pyramid(prior, squared=False)
+    assert pyr is scalespace.pyramid(prior, squared=False)
+    assert pyr is not scalespace.pyramid(prior, squared=True)
+    small = pyr.levels(5.0)
+    assert pyr.levels(2.0) is small  # nothing to add: the same snapshot
+    big = pyr.levels(50.0)
+    assert big.scale.size > small.scale.size
+    np.testing.assert_array_equal(big.coef[: small.coef.size], small.coef)
+
+
+def test_threads_sharing_a_prior_get_the_same_integrals() -> None:
+    """Eight threads asking one new prior for different spreads at once (levels built concurrently)."""
+    prior = TerrainPrior.from_array(rough_field(seed=6), GRID)
+    means, covs = random_gaussians(GRID, 64, seed=9)
+    with ThreadPoolExecutor(8) as pool:
+        parts = list(pool.map(lambda i: integrate(prior, means[i::8], covs[i::8]), range(8)))
+    alone = integrate(TerrainPrior.from_array(rough_field(seed=6), GRID), means, covs)
+    for i in range(8):
+        np.testing.assert_array_equal(parts[i], alone[i::8])
+
+
+@settings(max_examples=20, deadline=None)
+@given(
+    shape=st.tuples(st.integers(1, 6), st.integers(1, 6)),
+    sigma=st.floats(np.log(0.5), np.log(50.0)).map(np.exp),
+    ecc=st.floats(1.0, 5.0),
+    angle=st.floats(0.0, np.pi),
+    fu=st.floats(0.0, 1.0),
+    fv=st.floats(0.0, 1.0),
+)
+def test_tiny_grids_match_the_reference(shape, sigma, ecc, angle, fu, fv) -> None:
+    grid = Grid("EPSG:32734", Affine(CELL, 0.0, 300_000.0, 0.0, -CELL, 6_200_000.0), *shape)
+    prior = TerrainPrior.from_array(rough_field(seed=1, shape=shape) + 0.1, grid)
+    mean, cov = gaussian(grid, sigma, ecc, angle, fu, fv)
+    ref = reference_integrate(prior, mean[None], cov[None])[0]
+    assert integrate(prior, mean[None], cov[None])[0] == pytest.approx(ref, rel=0.01)
 
 
 @pytest.mark.parametrize("rho", [0.0, 0.01, 0.2, 0.5, 0.64, 1.0, 1.59, 1.61, 3.0, 10.0, 60.0])
