@@ -170,7 +170,7 @@ TOL = 3e-4
 """Worst error of a rule on a unit step smoothed at the level's σ (sets the number of points)."""
 TRAP_STEP = 1.6
 """Trapezoid spacing along a wide leftover axis, in σ of the level."""
-TRAP_SPAN = 4.0
+TRAP_SPAN = 5.0
 """Trapezoid nodes cover ± this many leftover σ."""
 MAX_POINTS = 4097
 """Most points along one axis; Gaussians needing more (eccentricity beyond ~500:1) go to the terraces."""
