@@ -30,7 +30,7 @@ from typing import NamedTuple
 import numba as nb
 import numpy as np
 from scipy import sparse
-from scipy.ndimage import spline_filter
+from scipy.ndimage import correlate1d, spline_filter
 from scipy.special import ndtr
 
 from pipeline.prior import TerrainPrior
@@ -63,6 +63,9 @@ class Packed(NamedTuple):
     coef: np.ndarray
 
 
+_NODE = np.array([1.0, 4.0, 1.0]) / 6.0  # a cubic B-spline's values at its nodes
+
+
 class Pyramid:
     """f_{s_k} = r ⊛ G_{s_k} for s_k = S0·RATIO^k, k = 0..L-1, L growing on demand (thread-safe).
 
@@ -72,7 +75,6 @@ class Pyramid:
     def __init__(self, field: np.ndarray) -> None:
         self.field = np.ascontiguousarray(field, dtype=np.float64)
         self.packed = Packed(*(np.zeros(0) for _ in range(4)), *(np.zeros(k, np.int64) for k in (0, 0, 1)), np.zeros(0, np.float32))
-        self._top: tuple[float, float, float, np.ndarray] | None = None  # (s, step, origin, values) of the top level
         self._lock = threading.Lock()
 
     def levels(self, top_scale: float) -> Packed:
@@ -92,14 +94,15 @@ class Pyramid:
                 pad = PAD * s + 2.0 * h
                 u = -pad + h * np.arange(int(np.ceil((width + 2 * pad) / h)) + 1)
                 v = -pad + h * np.arange(int(np.ceil((height + 2 * pad) / h)) + 1)
-                if self._top is None:
+                if k == 0:
                     values = _exact_level(self.field, u, v, s)
                 else:
-                    ps, ph, po, pvals = self._top
-                    pu = po + ph * np.arange(pvals.shape[1])
-                    pv = po + ph * np.arange(pvals.shape[0])
+                    ps, ph, po, shape, coef = new[-1] if new else (p.scale[-1], p.step[-1], p.u0[-1], (p.nv[-1], p.nu[-1]), p.coef[p.offset[-2] :])
+                    # The level below, sampled at its nodes: its B-spline there is (c₋ + 4c + c₊)/6 each way.
+                    pvals = correlate1d(correlate1d(coef.reshape(shape).astype(np.float64), _NODE, 0, mode="mirror"), _NODE, 1, mode="mirror")
+                    pu = po + ph * np.arange(shape[1])
+                    pv = po + ph * np.arange(shape[0])
                     values = _smooth(pvals, pu, pv, u, v, np.sqrt(s * s - ps * ps), ph)
-                self._top = (s, h, -pad, values)
                 new.append((s, h, -pad, values.shape, spline_filter(values, order=3, mode="mirror").astype(np.float32).ravel()))
                 k += 1
                 if s >= top_scale:
