@@ -14,19 +14,30 @@ from tracker.association import DEFAULT_GAMMA, VARIANTS
 from tracker.hypotheses import ConstantVelocity, Static
 from tracker.io import track_files
 from tracker.sfunc import ExpS, PoissonS
+from tracker.terrace import METHODS as INTEGRATORS
 
 
 def cmd_run(args: argparse.Namespace) -> None:
+    from functools import partial
+
+    from tracker.terrace import integrate
+
     s_model = PoissonS(args.poisson_mu) if args.poisson_mu is not None else ExpS(args.tau)
     motion = ConstantVelocity(args.q, args.velocity_std) if args.motion == "cv" else Static()
     result = track_files(
         args.prior, args.reports, args.out, args.variant, s_model, motion, layer=args.layer,
         ellipse_prob=args.ellipse_prob, assignments_csv=args.assignments, gamma=args.gamma,
-        off_prior=args.off_prior,
+        off_prior=args.off_prior, integrator=partial(integrate, method=args.integrator),
     )
     skipped = int((result.assignments < 0).sum())
     print(f"{len(result.assignments)} reports -> {result.n_detected} targets ({args.variant}, {s_model}); "
           f"{skipped} skipped; wrote {args.out}" + (f" and {args.assignments}" if args.assignments else ""))
+
+
+def add_integrator_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--integrator", choices=INTEGRATORS, default="scalespace",
+                   help="how Gaussians are integrated against the prior: the prior's Gaussian pyramid (default, fast; "
+                        "~14 float32 per cell of memory) or the paper's terraces on its summed-area tables")
 
 
 def add_run_parser(sub) -> None:
@@ -43,6 +54,7 @@ def add_run_parser(sub) -> None:
     p.add_argument("--velocity-std", type=float, default=10.0, help="cv: initial velocity std per axis, m/s")
     p.add_argument("--gamma", type=float, default=DEFAULT_GAMMA, help="gate on d^2 (speed only; decisions do not depend on it)")
     p.add_argument("--off-prior", choices=("raise", "skip"), default="raise", help="reports where the prior has no mass")
+    add_integrator_argument(p)
     p.add_argument("--ellipse-prob", type=float, default=0.95, help="probability contour drawn as each target's ellipse")
     p.add_argument("--assignments", type=Path, help="also write report -> hypothesis index as CSV")
     p.add_argument("--out", type=Path, required=True, help="GeoPackage to write (layers targets, ellipses)")
@@ -57,7 +69,7 @@ def cmd_experiment(args: argparse.Namespace) -> None:
         n_datasets=args.datasets, n_reports=args.reports, taus=parse_taus(args.tau),
         variants=tuple(args.variants.split(",")), n_targets=args.targets, base_seed=args.seed,
         sensor=AirborneSensor(azimuth_std_rad=args.azimuth_std_mrad / 1000.0, range_std_m=args.range_std_m),
-        poisson_mu=args.poisson_mu,
+        poisson_mu=args.poisson_mu, integrator=args.integrator,
     )
     if args.scheduler:
         from pipeline.scheduler import get_client  # dask loads only for cluster runs
@@ -90,6 +102,7 @@ def add_experiment_parser(sub) -> None:
     p.add_argument("--poisson-mu", type=float, help="also run every variant with the exact eq. 16 S under Poisson(mu)")
     p.add_argument("--azimuth-std-mrad", type=float, default=2.0, help="sensor azimuth standard deviation, mrad")
     p.add_argument("--range-std-m", type=float, default=12.0, help="sensor slant-range standard deviation, m")
+    add_integrator_argument(p)
     p.add_argument("--workers", type=int, help="local worker processes (default: all cores; 1 runs inline)")
     p.add_argument("--scheduler", metavar="ADDRESS", help="Dask scheduler to spread the data sets over, e.g. tcp://10.0.0.5:8786 (instead of --workers)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

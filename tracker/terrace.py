@@ -53,6 +53,9 @@ SHEAR = 16.0
 MASS = 0.9999
 """Default Gaussian mass covered by the terraces (beyond the grid's nearest point)."""
 
+METHODS = ("scalespace", "terraces")
+"""The integrators :func:`integrate` offers (its ``method``)."""
+
 _FAR = 1400.0  # ρ_lo² beyond which e^{-ρ²/2} underflows: the integral is 0 in float64
 
 
@@ -448,8 +451,8 @@ def integrate(
         raise ValueError(f"integrate: shear must be >= 0, got {shear!r}")
     if scheme not in ("adaptive", "paper"):
         raise ValueError(f"integrate: scheme must be 'adaptive' or 'paper', got {scheme!r}")
-    if method not in ("scalespace", "terraces"):
-        raise ValueError(f"integrate: method must be 'scalespace' or 'terraces', got {method!r}")
+    if method not in METHODS:
+        raise ValueError(f"integrate: method must be one of {METHODS}, got {method!r}")
     uc, vc, cuu, cuv, cvv = pixel_gaussians(prior, means, covs)
     result = np.empty(means.shape[0])
     rest = np.arange(means.shape[0])

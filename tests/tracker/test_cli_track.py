@@ -52,6 +52,25 @@ def test_run_matches_library(files, variant, capsys):
     assert "32634" in meta["crs"] or "UTM zone 34" in meta["crs"]
 
 
+def test_run_with_the_terraces(files):
+    """``--integrator terraces`` reaches the terraces: assignments equal the library run with them."""
+    d, prior, _ = files
+    from functools import partial
+
+    from tracker.io import read_reports
+    from tracker.terrace import integrate
+
+    code = main(["run", "--prior", str(d / "prior.tif"), "--reports", str(d / "reports.csv"), "--integrator", "terraces",
+                 "--tau", "-1.0", "--assignments", str(d / "t.csv"), "--out", str(d / "t.gpkg")])
+    assert code == 0
+    want = associate(prior, read_reports(d / "reports.csv")[0], "TT", tau=-1.0,
+                     integrator=partial(integrate, method="terraces"))
+    np.testing.assert_array_equal(pd.read_csv(d / "t.csv")["hypothesis"].to_numpy(), want.assignments)
+    with pytest.raises(SystemExit):
+        main(["run", "--prior", str(d / "prior.tif"), "--reports", str(d / "reports.csv"), "--integrator", "strips",
+              "--out", str(d / "x.gpkg")])
+
+
 def test_run_poisson(files):
     d, prior, _ = files
     from tracker.io import read_reports

@@ -4,6 +4,7 @@ direct scoring of fresh (uncached) tracker runs, determinism across workers, sum
 from __future__ import annotations
 
 import json
+from functools import partial
 
 import numpy as np
 import pandas as pd
@@ -64,6 +65,23 @@ def test_config_validation() -> None:
         ExperimentConfig(variants=("XX",))
     with pytest.raises(ValueError, match="n_datasets"):
         ExperimentConfig(n_datasets=1)
+    with pytest.raises(ValueError, match="integrator 'strips' unknown"):
+        ExperimentConfig(integrator="strips")
+
+
+def test_run_dataset_with_the_terraces_uses_them(prior_path: str) -> None:
+    """``integrator="terraces"``: the records equal a direct run with the terraces throughout."""
+    config = _config(taus=(-2.0,), variants=("TT",), integrator="terraces")
+    rec = pd.DataFrame(run_dataset(prior_path, 5, config)).iloc[0]
+    prior = TerrainPrior.read(prior_path)
+    terraces = partial(integrate, method="terraces")
+    sc = simulate(prior, 5, config.n_targets, config.n_reports, config.region_m, config.keep_fraction, config.sensor)
+    ref = perfect_estimate(prior, sc.reports, integrator=terraces)
+    res = associate(prior, sc.reports, "TT", s_model=ExpS(-2.0), integrator=terraces)
+    est = res.estimate
+    expected = score(prior, est.means, est.covs, True, ref.means, ref.covs, True, integrator=terraces)
+    assert rec.nd_hat == res.n_detected
+    assert rec.score == pytest.approx(expected, rel=1e-9, abs=1e-12)
 
 
 def test_cached_integrator_matches_terrace(prior_path: str) -> None:
@@ -146,13 +164,15 @@ def test_cli_experiment(prior_path: str, tmp_path, capsys) -> None:
 
     out = tmp_path / "cli"
     argv = ["experiment", "--prior", prior_path, "--datasets", "2", "--reports", "15", "--tau", "-2:2:2",
-            "--targets", "60", "--workers", "1", "--quiet", "--poisson-mu", "80", "--out", str(out)]
+            "--targets", "60", "--workers", "1", "--quiet", "--poisson-mu", "80", "--integrator", "terraces",
+            "--out", str(out)]
     assert main(argv) == 0
     results = pd.read_parquet(out / "results.parquet")
     paper = results[results.s_model == "exp"]
     assert sorted(paper["tau"].unique()) == [-2.0, 0.0, 2.0]
     assert set(results["seed"]) == {0, 1} and len(results) == 2 * 3 * (3 + 1)
     summary = json.loads((out / "summary.json").read_text())
+    assert summary["config"]["integrator"] == "terraces"
     exact_tt = results[(results.s_model == "poisson") & (results.variant == "TT")]["score"]
     assert summary["variants"]["TT"]["poisson_mean_score_x10^4.5"] == pytest.approx(exact_tt.mean() * 10**4.5)
     assert "best tau" in capsys.readouterr().out
