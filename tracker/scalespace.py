@@ -29,8 +29,6 @@ from typing import NamedTuple
 
 import numba as nb
 import numpy as np
-from scipy import sparse
-from scipy.ndimage import correlate1d, spline_filter
 from scipy.special import ndtr
 
 from pipeline.prior import TerrainPrior
@@ -61,9 +59,6 @@ class Packed(NamedTuple):
     nv: np.ndarray
     offset: np.ndarray
     coef: np.ndarray
-
-
-_NODE = np.array([1.0, 4.0, 1.0]) / 6.0  # a cubic B-spline's values at its nodes
 
 
 class Pyramid:
@@ -97,13 +92,16 @@ class Pyramid:
                 if k == 0:
                     values = _exact_level(self.field, u, v, s)
                 else:
-                    ps, ph, po, shape, coef = new[-1] if new else (p.scale[-1], p.step[-1], p.u0[-1], (p.nv[-1], p.nu[-1]), p.coef[p.offset[-2] :])
-                    # The level below, sampled at its nodes: its B-spline there is (c₋ + 4c + c₊)/6 each way.
-                    pvals = correlate1d(correlate1d(coef.reshape(shape).astype(np.float64), _NODE, 0, mode="mirror"), _NODE, 1, mode="mirror")
-                    pu = po + ph * np.arange(shape[1])
-                    pv = po + ph * np.arange(shape[0])
-                    values = _smooth(pvals, pu, pv, u, v, np.sqrt(s * s - ps * ps), ph)
-                new.append((s, h, -pad, values.shape, spline_filter(values, order=3, mode="mirror").astype(np.float32).ravel()))
+                    # The level below, sampled at its nodes, from its float32 coefficients: the same
+                    # numbers whether it was built in this call or an earlier one.
+                    if new:
+                        ps, ph, po, shape, coef = new[-1]
+                    else:
+                        ps, ph, po = p.scale[-1], p.step[-1], p.u0[-1]
+                        shape, coef = (int(p.nv[-1]), int(p.nu[-1])), p.coef[p.offset[-2] :]
+                    below = _node_values(coef.reshape(shape))
+                    values = _smooth(below, po, ph, u, v, np.sqrt(s * s - ps * ps))
+                new.append((s, h, -pad, values.shape, _prefilter(values).ravel()))
                 k += 1
                 if s >= top_scale:
                     break
@@ -121,50 +119,128 @@ class Pyramid:
             return self.packed
 
 
-def _box_weights(nodes: np.ndarray, n_cells: int, s: float) -> sparse.csr_matrix:
-    """(nodes, cells) weights ΔΦ: the mass of cell [i, i+1] under N(node, s²), banded to ±8 s."""
+def _band(first: np.ndarray, n_src: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """Start indices (clipped so a band of ``width`` fits in ``n_src``) and the (nodes, width) source indices."""
+    width = min(width, n_src)
+    start = np.clip(first, 0, n_src - width).astype(np.int64)
+    return start, start[:, None] + np.arange(width)
+
+
+def _box_weights(nodes: np.ndarray, n_cells: int, s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Banded weights ΔΦ, the mass of cell [i, i+1] under N(node, s²), over ±8 s: (start, (nodes, band))."""
     reach = int(np.ceil(8.0 * s)) + 1
-    rows, cols = [], []
-    for off in range(-reach, reach + 1):
-        i = np.floor(nodes).astype(np.int64) + off
-        ok = (i >= 0) & (i < n_cells)
-        rows.append(np.flatnonzero(ok))
-        cols.append(i[ok])
-    r = np.concatenate(rows)
-    c = np.concatenate(cols)
-    w = ndtr((c + 1 - nodes[r]) / s) - ndtr((c - nodes[r]) / s)
-    return sparse.csr_matrix((w, (r, c)), shape=(nodes.size, n_cells))
+    start, idx = _band(np.floor(nodes).astype(np.int64) - reach, n_cells, 2 * reach + 1)
+    x = nodes[:, None]
+    return start, ndtr((idx + 1 - x) / s) - ndtr((idx - x) / s)
+
+
+def _gauss_weights(nodes: np.ndarray, origin: float, n_src: int, d: float, h: float) -> tuple[np.ndarray, np.ndarray]:
+    """Banded trapezoid weights h·φ_d(node - src) for a source lattice origin + h·j, over ±10 d."""
+    reach = int(np.ceil(10.0 * d / h)) + 1
+    start, idx = _band(np.floor((nodes - origin) / h).astype(np.int64) - reach, n_src, 2 * reach + 1)
+    x = (nodes[:, None] - origin - h * idx) / d
+    return start, h * np.exp(-0.5 * x * x) / (np.sqrt(2 * np.pi) * d)
+
+
+@nb.njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
+def _separable(values, su, wu, sv, wv):
+    """out[m, n] = Σ_b wv[m, b] Σ_c wu[n, c] values[sv[m] + b, su[n] + c]: rows first, then columns."""
+    h = values.shape[0]
+    nu, bu = wu.shape
+    nv, bv = wv.shape
+    rows = np.empty((h, nu))
+    for j in nb.prange(h):
+        for n in range(nu):
+            acc = 0.0
+            for c in range(bu):
+                acc += wu[n, c] * values[j, su[n] + c]
+            rows[j, n] = acc
+    out = np.zeros((nv, nu))
+    for m in nb.prange(nv):
+        for b in range(bv):
+            w = wv[m, b]
+            src = rows[sv[m] + b]
+            for n in range(nu):
+                out[m, n] += w * src[n]
+    return out
 
 
 def _exact_level(values: np.ndarray, u: np.ndarray, v: np.ndarray, s: float) -> np.ndarray:
     """f_s at the nodes u × v exactly: Σ_cells value · ΔΦ_u · ΔΦ_v (the field is constant on cells)."""
-    bu = _box_weights(u, values.shape[1], s)
-    bv = _box_weights(v, values.shape[0], s)
-    return np.asarray(bv @ (bu @ values.T).T)
+    return _separable(values, *_box_weights(u, values.shape[1], s), *_box_weights(v, values.shape[0], s))
 
 
-def _gauss_weights(nodes: np.ndarray, src: np.ndarray, d: float, h: float) -> sparse.csr_matrix:
-    """(nodes, src) trapezoid weights h·φ_d(node - src) for a lattice ``src`` of spacing h, banded to ±10 d."""
-    reach = int(np.ceil(10.0 * d / h)) + 1
-    first = np.floor((nodes - src[0]) / h).astype(np.int64)
-    rows, cols = [], []
-    for off in range(-reach, reach + 1):
-        j = first + off
-        ok = (j >= 0) & (j < src.size)
-        rows.append(np.flatnonzero(ok))
-        cols.append(j[ok])
-    r = np.concatenate(rows)
-    c = np.concatenate(cols)
-    x = (nodes[r] - src[c]) / d
-    w = h * np.exp(-0.5 * x * x) / (np.sqrt(2 * np.pi) * d)
-    return sparse.csr_matrix((w, (r, c)), shape=(nodes.size, src.size))
+def _smooth(values: np.ndarray, origin: float, h: float, u: np.ndarray, v: np.ndarray, d: float) -> np.ndarray:
+    """f ⊛ G_d at the nodes u × v from samples of f on the lattice origin + h·(j, i)."""
+    nv, nu = values.shape
+    return _separable(values, *_gauss_weights(u, origin, nu, d, h), *_gauss_weights(v, origin, nv, d, h))
 
 
-def _smooth(values: np.ndarray, pu: np.ndarray, pv: np.ndarray, u: np.ndarray, v: np.ndarray, d: float, h: float) -> np.ndarray:
-    """f ⊛ G_d at the nodes u × v from samples of f on the lattice pu × pv (spacing h)."""
-    ku = _gauss_weights(u, pu, d, h)
-    kv = _gauss_weights(v, pv, d, h)
-    return np.asarray(kv @ (ku @ values.T).T)
+@nb.njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
+def _node_values(coef):
+    """A 2-D cubic B-spline's values at its nodes, (c₋ + 4c + c₊)/6 each way (mirror ends), float64."""
+    h, w = coef.shape
+    rows = np.empty((h, w))
+    for j in nb.prange(h):
+        for i in range(w):
+            left = coef[j, i - 1] if i > 0 else coef[j, min(1, w - 1)]
+            right = coef[j, i + 1] if i < w - 1 else coef[j, max(w - 2, 0)]
+            rows[j, i] = (left + 4.0 * coef[j, i] + right) / 6.0
+    out = np.empty((h, w))
+    for j in nb.prange(h):
+        up = j - 1 if j > 0 else min(1, h - 1)
+        down = j + 1 if j < h - 1 else max(h - 2, 0)
+        for i in range(w):
+            out[j, i] = (rows[up, i] + 4.0 * rows[j, i] + rows[down, i]) / 6.0
+    return out
+
+
+_POLE = np.sqrt(3.0) - 2.0  # of the cubic B-spline's interpolation filter
+_HORIZON = int(np.ceil(np.log(1e-13) / np.log(-_POLE)))  # terms of the causal start-up sum
+
+
+@nb.njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
+def _prefilter(values):
+    """Cubic B-spline coefficients interpolating the 2-D ``values`` (float32 out): the recursive
+    filter with pole √3 - 2 along rows, then along columns (vectorised across a block of columns),
+    with mirror-symmetric ends (Unser 1999; Thévenaz, Blu and Unser 2000)."""
+    z = _POLE
+    c = values * 36.0  # the filter's gain (1 - z)(1 - 1/z) = 6, once per axis
+    h, w = c.shape
+    for j in nb.prange(h):
+        x = c[j]
+        acc = 0.0
+        zk = 1.0
+        for k in range(min(_HORIZON, w)):
+            acc += zk * x[k]
+            zk *= z
+        x[0] = acc
+        for k in range(1, w):
+            x[k] += z * x[k - 1]
+        x[w - 1] = z / (z * z - 1.0) * (x[w - 1] + z * x[w - 2])
+        for k in range(w - 2, -1, -1):
+            x[k] = z * (x[k + 1] - x[k])
+    block = 64
+    for b in nb.prange((w + block - 1) // block):
+        lo = b * block
+        hi = min(lo + block, w)
+        first = np.zeros(hi - lo)
+        zk = 1.0
+        for k in range(min(_HORIZON, h)):
+            for i in range(lo, hi):
+                first[i - lo] += zk * c[k, i]
+            zk *= z
+        for i in range(lo, hi):
+            c[0, i] = first[i - lo]
+        for k in range(1, h):
+            for i in range(lo, hi):
+                c[k, i] += z * c[k - 1, i]
+        for i in range(lo, hi):
+            c[h - 1, i] = z / (z * z - 1.0) * (c[h - 1, i] + z * c[h - 2, i])
+        for k in range(h - 2, -1, -1):
+            for i in range(lo, hi):
+                c[k, i] = z * (c[k + 1, i] - c[k, i])
+    return c.astype(np.float32)
 
 
 # --- quadrature rules -------------------------------------------------------------------------
