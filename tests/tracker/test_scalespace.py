@@ -14,6 +14,7 @@ import pytest
 from affine import Affine
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scipy.ndimage import correlate1d, spline_filter
 from scipy.special import ndtr
 
 from pipeline.grid import Grid
@@ -72,6 +73,25 @@ def test_levels_are_added_on_demand_and_kept() -> None:
     big = pyr.levels(50.0)
     assert big.scale.size > small.scale.size
     np.testing.assert_array_equal(big.coef[: small.coef.size], small.coef)
+
+
+def test_levels_do_not_depend_on_how_the_pyramid_grew() -> None:
+    field = rough_field(seed=4, shape=(30, 41))
+    once = scalespace.Pyramid(field).levels(40.0)
+    grown = scalespace.Pyramid(field)
+    for top in (1.0, 3.0, 9.0, 40.0):
+        stepwise = grown.levels(top)
+    np.testing.assert_array_equal(stepwise.coef, once.coef)
+    np.testing.assert_array_equal(stepwise.offset, once.offset)
+
+
+def test_prefilter_and_node_values_match_scipy() -> None:
+    """The numba B-spline prefilter and its inverse at the nodes against scipy.ndimage."""
+    x = np.random.default_rng(2).normal(size=(37, 52))
+    np.testing.assert_allclose(scalespace._prefilter(x), spline_filter(x, order=3, mode="mirror"), atol=2e-6)
+    c = spline_filter(x, order=3, mode="mirror")
+    k = np.array([1.0, 4.0, 1.0]) / 6.0
+    np.testing.assert_allclose(scalespace._node_values(c), correlate1d(correlate1d(c, k, 0, mode="mirror"), k, 1, mode="mirror"), atol=1e-12)
 
 
 def test_threads_sharing_a_prior_get_the_same_integrals() -> None:
