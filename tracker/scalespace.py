@@ -44,6 +44,16 @@ GAMMA = 2.0
 """Lattice nodes per smoothing σ (spacing s/γ)."""
 PAD = 7.0
 """Lattice margin beyond the grid, in σ of the level."""
+MAX_CELLS = 25_000_000
+"""Largest grid (cells) :func:`tracker.terrace.integrate` builds a pyramid for (~3.5 GiB peak at
+this size, see :func:`pyramid_bytes`); larger priors are integrated with the terraces."""
+
+
+def pyramid_bytes(shape: tuple[int, int]) -> float:
+    """Peak bytes to build and keep a pyramid of r (or r²) for a grid of ``shape`` cells: its float32
+    levels (~3.4 x level 0) and, while level 0 is built, three float64 arrays of its size."""
+    nodes0 = (GAMMA / S0) ** 2 * shape[0] * shape[1]
+    return nodes0 * (4 / (1 - RATIO**-2) + 3 * 8)
 
 
 class Packed(NamedTuple):

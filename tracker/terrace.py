@@ -35,6 +35,7 @@ cost grows with eccentricity, never with spread.
 
 from __future__ import annotations
 
+import warnings
 from typing import Literal
 
 import numba as nb
@@ -433,7 +434,8 @@ def integrate(
     ``method="scalespace"`` (default) integrates with the prior's Gaussian pyramid
     (:mod:`tracker.scalespace`) the Gaussians that have most of their mass on the grid and sends
     the rest (centres more than ``NEAR_RHO`` σ off the grid, spreads wider than the grid, thinner
-    than ~500:1) to the terraces; ``method="terraces"`` uses the terraces for all.
+    than ~500:1) to the terraces; ``method="terraces"`` uses the terraces for all, as does
+    ``"scalespace"`` (with a warning) on grids of more than ``scalespace.MAX_CELLS`` cells.
     Terrace settings: ``shear = 0`` keeps every ellipse at ``n_strips`` strips; ``scheme="paper"``
     uses the paper's equal-mass terraces (with ``mass = 0.99`` its stop). Raises ``ValueError``
     naming the indices of non-finite means or of covariances that are not symmetric positive definite.
@@ -456,6 +458,14 @@ def integrate(
     uc, vc, cuu, cuv, cvv = pixel_gaussians(prior, means, covs)
     result = np.empty(means.shape[0])
     rest = np.arange(means.shape[0])
+    if method == "scalespace" and prior.grid.height * prior.grid.width > scalespace.MAX_CELLS:
+        warnings.warn(
+            f"integrate: the prior's {prior.grid.height} x {prior.grid.width} grid is above scalespace.MAX_CELLS "
+            f"({scalespace.MAX_CELLS:,} cells; its pyramid would take ~{scalespace.pyramid_bytes(prior.grid.shape) / 2**30:.1f} GiB): "
+            "using the terraces",
+            stacklevel=2,
+        )
+        method = "terraces"
     if method == "scalespace" and rest.size:
         h, w = prior.grid.shape
         handled = near_grid(uc, vc, cuu, cuv, cvv, float(w), float(h), NEAR_RHO, NEAR_SPREAD)
