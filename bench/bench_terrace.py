@@ -189,7 +189,7 @@ def run(quick: bool = False) -> dict:
         "load_average": list(os.getloadavg()),
         "goal_per_s": 1_000_000,
         "per_spread": per_spread,
-        "figure": str(FIGURE.relative_to(HERE.parent)),
+        "figure": str(FIGURE.relative_to(HERE.parent)) if FIGURE.is_relative_to(HERE.parent) else str(FIGURE),
         "table": rows,
     }
 
