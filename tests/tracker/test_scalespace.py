@@ -85,6 +85,14 @@ def test_levels_do_not_depend_on_how_the_pyramid_grew() -> None:
     np.testing.assert_array_equal(stepwise.offset, once.offset)
 
 
+@pytest.mark.parametrize("shape", [(1, 1), (31, 33), (64, 65), (70, 5)])
+def test_blocks_round_trip(shape) -> None:
+    coef = np.random.default_rng(1).normal(size=shape).astype(np.float32)
+    flat = scalespace._tile(coef)
+    assert flat.size == -(-shape[0] // scalespace.TILE) * -(-shape[1] // scalespace.TILE) * (scalespace.TILE + 3) ** 2
+    np.testing.assert_array_equal(scalespace._untile(flat, shape), coef)
+
+
 def test_prefilter_and_node_values_match_scipy() -> None:
     """The numba B-spline prefilter and its inverse at the nodes against scipy.ndimage."""
     x = np.random.default_rng(2).normal(size=(37, 52))
