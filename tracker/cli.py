@@ -37,7 +37,7 @@ def cmd_run(args: argparse.Namespace) -> None:
 def add_integrator_argument(p: argparse.ArgumentParser) -> None:
     p.add_argument("--integrator", choices=INTEGRATORS, default="scalespace",
                    help="how Gaussians are integrated against the prior: the prior's Gaussian pyramid (default, fast; "
-                        "~14 float32 per cell of memory) or the paper's terraces on its summed-area tables")
+                        "~17 float32 per cell of memory) or the paper's terraces on its summed-area tables")
 
 
 def add_run_parser(sub) -> None:
