@@ -1,8 +1,11 @@
 """Gaussian-terrace integration of 2-D Gaussians against a terrain prior (paper 1, appendix A).
 
 ``integrate(prior, means, covs)`` returns ∫ G(y; a_n, A_n) r(y) dy for a batch of Gaussians in
-per m² (G and r are both densities per m²); ``squared=True`` returns ∫ G r² dy in per m⁴. The cost
-per Gaussian is about ``n_terraces × n_strips`` summed-area-table rectangles whatever its spread.
+per m² (G and r are both densities per m²); ``squared=True`` returns ∫ G r² dy in per m⁴. By
+default it uses the prior's Gaussian pyramid (:mod:`tracker.scalespace`, ~30 look-ups per
+integral) and the terraces below for the Gaussians the pyramid is not made for;
+``method="terraces"`` uses the terraces throughout. A terrace integral costs about
+``n_terraces × n_strips`` summed-area-table rectangles whatever the Gaussian's spread.
 
 The Gaussian is replaced by a stack of concentric elliptical terraces (its constant-density
 contours at Mahalanobis radii ρ_1 < … < ρ_K): a step function, constant on each ring, whose
