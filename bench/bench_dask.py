@@ -126,14 +126,14 @@ def child(mode: str, region: str, out: str, tile: int) -> dict:
     """One build in this process: ``memory`` (build_region_prior + write) or ``tiled`` (2 workers)."""
     import warnings
 
-    from pipeline.config import load_config
+    from pipeline.config.region import load_config
 
     warnings.simplefilter("ignore")
     config = load_config(region)
     # Warm-up on a 64 x 64 corner, off the clock: numba caches, GDAL drivers, imports.
     corner = dataclasses.replace(config, grid=config.grid.window_grid(0, 0, 64, 64))
     if mode == "memory":
-        from pipeline.build import build_region_prior
+        from pipeline.build.region import build_region_prior
 
         build_region_prior(corner, progress=False).write(Path(out).with_name("warm.tif"))
         t = time.perf_counter()
@@ -141,7 +141,7 @@ def child(mode: str, region: str, out: str, tile: int) -> dict:
         return {"seconds": time.perf_counter() - t, "peak_gib": _peak_gib()}
     from distributed import Client, LocalCluster
 
-    from pipeline.tiled import build_prior_tiled
+    from pipeline.tiled.build import build_prior_tiled
 
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, Client(cluster) as client:
         build_prior_tiled(corner, Path(out).with_name("warm.tif"), client=client, tile=32, progress=False)
@@ -167,7 +167,7 @@ def identical_priors(a: Path, b: Path, rows: int = 1024) -> bool:
     import rasterio
     from rasterio.windows import Window
 
-    from pipeline.prior import sat_paths
+    from pipeline.prior.terrain import sat_paths
 
     for pa, pb in zip(sat_paths(a), sat_paths(b), strict=True):
         x, y = np.load(pa, mmap_mode="r"), np.load(pb, mmap_mode="r")

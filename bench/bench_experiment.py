@@ -16,13 +16,19 @@ from concurrent.futures import ProcessPoolExecutor
 from functools import partial
 from pathlib import Path
 
-from pipeline.build import build_region_prior
-from pipeline.config import load_config
-from pipeline.prior import TerrainPrior
-from tracker.association import associate, perfect_estimate
-from tracker.experiment import ExperimentConfig, map_local, parse_taus, run_dataset, run_experiment
-from tracker.metrics import score
-from tracker.simulate import simulate
+from pipeline.build.region import build_region_prior
+from pipeline.config.region import load_config
+from pipeline.prior.terrain import TerrainPrior
+from tracker.association.greedy import associate, perfect_estimate
+from tracker.study.experiment import (
+    ExperimentConfig,
+    map_local,
+    parse_taus,
+    run_dataset,
+    run_experiment,
+)
+from tracker.study.metrics import score
+from tracker.study.simulate import simulate
 
 REGION = Path(__file__).resolve().parents[1] / "terrain_data" / "region.toml"
 

@@ -17,9 +17,9 @@ from scipy.spatial import cKDTree
 from sklearn.neighbors import BallTree
 
 from bench.timing import best_time
-from tracker import costmodel
-from tracker.gating import gate, gate_threshold
-from tracker.gating_exact import lambda_max_bound
+from tracker.gating import costmodel
+from tracker.gating.exact import lambda_max_bound
+from tracker.gating.gate import gate, gate_threshold
 
 FIGURES = Path(__file__).resolve().parent / "figures"
 GAMMA = gate_threshold(0.99, 2)
@@ -207,7 +207,7 @@ def bench_moving(n: int, rounds: int, ms: list[int], per_km2: float = 1.0) -> di
 
 def _choice(tm, tc, rm, rc, rt):
     """The cost model's pick for a scene, via the same path gate() uses."""
-    from tracker import gating
+    from tracker.gating import gate as gating
 
     sc = gating._validate(tm, tc, rm, rc, rt, 0.0, 1.0)
     return gating._plan(sc, GAMMA, 0.0, "auto", "auto").choice

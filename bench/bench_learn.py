@@ -32,11 +32,11 @@ def _timed(fn):
 
 
 def bench_region() -> dict:
-    from pipeline.build import build_features, build_prior
-    from pipeline.config import load_config
-    from pipeline.learn import PriorEstimator
-    from pipeline.poisson import Objective
-    from pipeline.prior import TerrainPrior
+    from pipeline.build.region import build_features, build_prior
+    from pipeline.config.region import load_config
+    from pipeline.learn.estimator import PriorEstimator
+    from pipeline.learn.poisson import Objective
+    from pipeline.prior.terrain import TerrainPrior
     from tests.pipeline.gis_helpers import REGION_TOML
     from tests.pipeline.learn_synth import sample_points
 
@@ -74,8 +74,8 @@ def bench_region() -> dict:
 
 def synthetic_stack(n: int):
     """Categoricals from smooth patterns and the distance (m) to four straight roads, 20 m cells."""
-    from pipeline.features import Feature, FeatureStack
-    from pipeline.grid import Grid
+    from pipeline.features.stack import Feature, FeatureStack
+    from pipeline.gis.grid import Grid
 
     cell = 20.0
     grid = Grid("EPSG:32734", Affine(cell, 0.0, 200_000.0, 0.0, -cell, 6_400_000.0), n, n)
@@ -103,8 +103,12 @@ def synthetic_stack(n: int):
 
 
 def bench_large(n: int) -> dict:
-    from pipeline.learn import PriorEstimator
-    from pipeline.likelihood import CategoricalLikelihood, LikelihoodModel, RoadDistanceLikelihood
+    from pipeline.learn.estimator import PriorEstimator
+    from pipeline.prior.likelihood import (
+        CategoricalLikelihood,
+        LikelihoodModel,
+        RoadDistanceLikelihood,
+    )
 
     truth = LikelihoodModel({
         "road_distance": RoadDistanceLikelihood(150.0, 0.1),

@@ -38,8 +38,8 @@ GOAL_RECTS_PER_S = 20e6
 # --- 1. bundled region ------------------------------------------------------------------------
 
 def bench_bundled_build(repeat: int) -> dict:
-    import pipeline.build as build
-    from pipeline.config import load_config
+    import pipeline.build.region as build
+    from pipeline.config.region import load_config
 
     config = load_config(ROOT / "terrain_data" / "region.toml")
     read_s = [0.0]
@@ -107,13 +107,17 @@ def large_grid_child(n: int) -> dict:
     """Features + prior on an n x n grid of 20 m cells; timings per step and this process's peak RSS."""
     from affine import Affine
 
-    from pipeline import rasterize
-    from pipeline.distance import distance_m
-    from pipeline.features import Feature, FeatureStack
-    from pipeline.grid import Grid
-    from pipeline.likelihood import CategoricalLikelihood, LikelihoodModel, RoadDistanceLikelihood
-    from pipeline.prior import TerrainPrior
-    from pipeline.slope import slope_classes, slope_deg
+    from pipeline.features import rasterize
+    from pipeline.features.distance import distance_m
+    from pipeline.features.slope import slope_classes, slope_deg
+    from pipeline.features.stack import Feature, FeatureStack
+    from pipeline.gis.grid import Grid
+    from pipeline.prior.likelihood import (
+        CategoricalLikelihood,
+        LikelihoodModel,
+        RoadDistanceLikelihood,
+    )
+    from pipeline.prior.terrain import TerrainPrior
 
     cell = 20.0
     grid = Grid("EPSG:32734", Affine(cell, 0, 0, 0, -cell, n * cell), n, n)
@@ -136,7 +140,7 @@ def large_grid_child(n: int) -> dict:
     stack = FeatureStack(grid)
     road_mask = step("rasterize roads", rasterize.mask, roads, grid, all_touched=True)
     water = step("rasterize lakes", rasterize.mask, lakes, grid)
-    # float64 throughout, as pipeline.build makes them: the memory figure is the real build's
+    # float64 throughout, as pipeline.build.region makes them: the memory figure is the real build's
     dist = step("distance to roads", distance_m, road_mask, cell, cell)
     del road_mask
     slope = step("slope", slope_deg, dem, cell, cell)
@@ -198,8 +202,8 @@ def _horn_numpy(dem: np.ndarray, dx: float, dy: float) -> np.ndarray:
 def bench_feature_baselines(n: int, repeat: int) -> dict:
     from scipy.ndimage import distance_transform_edt
 
-    from pipeline.distance import distance_m
-    from pipeline.slope import slope_deg
+    from pipeline.features.distance import distance_m
+    from pipeline.features.slope import slope_deg
 
     roads, _, dem, _ = _synthetic_layers(n, 20.0, np.random.default_rng(1))
     mask = np.random.default_rng(2).random((n, n)) < 2e-4
@@ -242,8 +246,8 @@ def _rect_sums_numpy(sat: np.ndarray, u0, u1, v0, v1) -> np.ndarray:
 def bench_rect_sums(n_rects: int, repeat: int) -> dict:
     from affine import Affine
 
-    from pipeline.grid import Grid
-    from pipeline.prior import TerrainPrior
+    from pipeline.gis.grid import Grid
+    from pipeline.prior.terrain import TerrainPrior
 
     rng = np.random.default_rng(3)
     grid = Grid("EPSG:32734", Affine(20.0, 0, 0, 0, -20.0, 14000.0), 700, 700)

@@ -8,7 +8,7 @@ Run: ``.venv/bin/python -c "import bench.bench_terrace as b, json; print(json.du
 The prior is synthetic (cell-level log-normal noise on a smooth pattern, 20 m cells). Gaussians
 have random orientation, eccentricity up to 3:1 and centres uniform over the grid. For each spread
 (major σ in cells) the rates of both methods are measured on a whole batch; on a small subset the
-dense reference (tracker.reference) gives the truth, each method's relative error and the
+dense reference (tracker.integrate.reference) gives the truth, each method's relative error and the
 reference's own rate; a Monte-Carlo estimator (mean of r at samples of the Gaussian) is then given,
 per Gaussian, the sample count that matches the default method's median error at that spread
 (n = CV² / error², CV the coefficient of variation of r under the Gaussian); it is run with at
@@ -26,11 +26,11 @@ import numpy as np
 from affine import Affine
 
 from bench.timing import best_time
-from pipeline.grid import Grid
-from pipeline.prior import TerrainPrior
-from tracker import scalespace
-from tracker.reference import reference_integrate
-from tracker.terrace import integrate
+from pipeline.gis.grid import Grid
+from pipeline.prior.terrain import TerrainPrior
+from tracker.integrate import scalespace
+from tracker.integrate.reference import reference_integrate
+from tracker.integrate.terraces import integrate
 
 HERE = Path(__file__).resolve().parent
 FIGURE = HERE / "figures" / "terrace_speed.png"
@@ -224,7 +224,7 @@ def study(n: int = 80, seed: int = 3) -> str:
     """Accuracy vs cost (terraces x strips, and the scale-space default) as a markdown table: relative error against the reference
     on a 300 x 300 synthetic prior, σ log-uniform 0.5..1000 cells, eccentricity to 100:1, centres
     inside the grid and up to 15 % beyond it with >= 1 % of their mass on it."""
-    from tracker.reference import covered_mass
+    from tracker.integrate.reference import covered_mass
 
     rng = np.random.default_rng(seed)
     prior = synthetic_prior(300, seed=4)

@@ -12,10 +12,10 @@ import time
 
 import numpy as np
 
-from pipeline.grid import Grid
-from pipeline.prior import TerrainPrior
-from tracker.association import Tracker
-from tracker.reports import Reports
+from pipeline.gis.grid import Grid
+from pipeline.prior.terrain import TerrainPrior
+from tracker.association.greedy import Tracker
+from tracker.types.reports import Reports
 
 CHUNK = 50_000  # reports per update() call: the stream arrives in chunks
 

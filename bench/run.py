@@ -22,7 +22,7 @@ import time
 import traceback
 from pathlib import Path
 
-from pipeline.atomic import atomic_paths
+from common.atomic import atomic_paths
 
 HERE = Path(__file__).resolve().parent
 RESULTS_JSON = HERE / "results.json"

@@ -10,11 +10,11 @@ import logging
 import sys
 from pathlib import Path
 
-from pipeline.build import build_features, build_prior, write_features
-from pipeline.config import load_config
-from pipeline.likelihood import LikelihoodModel
-from pipeline.plots import plot_features, plot_prior
-from pipeline.prior import PriorError, TerrainPrior
+from pipeline.build.region import build_features, build_prior, write_features
+from pipeline.config.region import load_config
+from pipeline.prior.likelihood import LikelihoodModel
+from pipeline.prior.terrain import PriorError, TerrainPrior
+from pipeline.show.plots import plot_features, plot_prior
 
 
 def cmd_features(args: argparse.Namespace) -> None:
@@ -32,8 +32,8 @@ def cmd_build(args: argparse.Namespace) -> None:
     if args.model:
         provenance["model"] = str(Path(args.model).resolve())
     if args.tiled or args.scheduler:
-        from pipeline.scheduler import get_client  # dask loads only for tiled builds
-        from pipeline.tiled import build_prior_tiled
+        from common.dask import get_client  # dask loads only for tiled builds
+        from pipeline.tiled.build import build_prior_tiled
 
         with get_client(args.scheduler) as client:
             s = build_prior_tiled(config, args.out, model, client, args.tile, provenance, progress=not args.quiet)
@@ -87,7 +87,7 @@ def make_parser() -> argparse.ArgumentParser:
 
 
 def cmd_learn(args: argparse.Namespace) -> None:
-    from pipeline.learn_run import learn_region  # scikit-learn and the fit load only for `learn`
+    from pipeline.learn.run import learn_region  # scikit-learn and the fit load only for `learn`
 
     report = learn_region(args.region, args.targets, args.out, args.layer, args.x, args.y, args.targets_crs,
                           cv=not args.no_cv, hybrid_prior=args.hybrid_prior, progress=not args.quiet,

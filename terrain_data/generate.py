@@ -20,8 +20,8 @@ import rasterio
 import shapely
 from scipy.ndimage import gaussian_filter
 
-from pipeline.atomic import atomic_paths
-from pipeline.grid import Grid
+from common.atomic import atomic_paths
+from pipeline.gis.grid import Grid
 
 SEED = 20261122
 CRS = "EPSG:32734"

@@ -10,17 +10,17 @@ import re
 import sys
 from pathlib import Path
 
-from tracker.association import DEFAULT_GAMMA, VARIANTS
-from tracker.hypotheses import ConstantVelocity, Static
-from tracker.io import track_files
-from tracker.sfunc import ExpS, PoissonS
-from tracker.terrace import METHODS as INTEGRATORS
+from tracker.association.greedy import DEFAULT_GAMMA, VARIANTS
+from tracker.integrate.terraces import METHODS as INTEGRATORS
+from tracker.io.tracks import track_files
+from tracker.models.sfunc import ExpS, PoissonS
+from tracker.types.hypotheses import ConstantVelocity, Static
 
 
 def cmd_run(args: argparse.Namespace) -> None:
     from functools import partial
 
-    from tracker.terrace import integrate
+    from tracker.integrate.terraces import integrate
 
     s_model = PoissonS(args.poisson_mu) if args.poisson_mu is not None else ExpS(args.tau)
     motion = ConstantVelocity(args.q, args.velocity_std) if args.motion == "cv" else Static()
@@ -62,8 +62,8 @@ def add_run_parser(sub) -> None:
 
 
 def cmd_experiment(args: argparse.Namespace) -> None:
-    from tracker.experiment import ExperimentConfig, parse_taus, run_and_write
-    from tracker.simulate import AirborneSensor
+    from tracker.study.experiment import ExperimentConfig, parse_taus, run_and_write
+    from tracker.study.simulate import AirborneSensor
 
     config = ExperimentConfig(
         n_datasets=args.datasets, n_reports=args.reports, taus=parse_taus(args.tau),
@@ -72,8 +72,8 @@ def cmd_experiment(args: argparse.Namespace) -> None:
         poisson_mu=args.poisson_mu, integrator=args.integrator,
     )
     if args.scheduler:
-        from pipeline.scheduler import get_client  # dask loads only for cluster runs
-        from tracker.sweep import run_and_write_dask
+        from common.dask import get_client  # dask loads only for cluster runs
+        from tracker.study.sweep import run_and_write_dask
 
         with get_client(args.scheduler) as client:
             summary, paths = run_and_write_dask(args.prior, args.out, config, client, progress=not args.quiet,
@@ -115,10 +115,10 @@ def cmd_simulate(args: argparse.Namespace) -> None:
     import numpy as np
     import pandas as pd
 
-    from pipeline.atomic import atomic_paths
-    from pipeline.prior import TerrainPrior
-    from tracker.io import write_reports
-    from tracker.simulate import simulate
+    from common.atomic import atomic_paths
+    from pipeline.prior.terrain import TerrainPrior
+    from tracker.io.tracks import write_reports
+    from tracker.study.simulate import simulate
 
     scenario = simulate(TerrainPrior.read(args.prior), args.seed, args.targets, args.reports)
     write_reports(args.out, scenario.reports)
@@ -145,9 +145,9 @@ def add_simulate_parser(sub) -> None:
 def cmd_show(args: argparse.Namespace) -> None:
     import pandas as pd
 
-    from pipeline.prior import TerrainPrior
-    from tracker.io import read_reports, read_tracks
-    from tracker.plots import tracks_figure
+    from pipeline.prior.terrain import TerrainPrior
+    from tracker.io.tracks import read_reports, read_tracks
+    from tracker.study.plots import tracks_figure
 
     prior = TerrainPrior.read(args.prior)
     reports, _ = read_reports(args.reports)

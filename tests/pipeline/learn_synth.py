@@ -6,9 +6,9 @@ import numpy as np
 from affine import Affine
 from scipy import ndimage
 
-from pipeline.features import Feature, FeatureStack
-from pipeline.grid import Grid
-from pipeline.likelihood import CategoricalLikelihood, LikelihoodModel, RoadDistanceLikelihood
+from pipeline.features.stack import Feature, FeatureStack
+from pipeline.gis.grid import Grid
+from pipeline.prior.likelihood import CategoricalLikelihood, LikelihoodModel, RoadDistanceLikelihood
 
 
 def small_stack(h: int = 60, w: int = 80, cell: float = 20.0, seed: int = 0) -> FeatureStack:

@@ -12,7 +12,7 @@ import pytest
 import rasterio
 
 from pipeline.cli import main
-from pipeline.prior import TerrainPrior
+from pipeline.prior.terrain import TerrainPrior
 from tests.pipeline.gis_helpers import REGION_TOML
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"

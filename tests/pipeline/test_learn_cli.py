@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 import shapely
 
-from pipeline.build import build_features, build_prior
+from pipeline.build.region import build_features, build_prior
 from pipeline.cli import main
-from pipeline.config import ConfigError
-from pipeline.learn_config import load_learn_config
-from pipeline.likelihood import LikelihoodModel
-from pipeline.prior import TerrainPrior
+from pipeline.config.learn import load_learn_config
+from pipeline.config.region import ConfigError
+from pipeline.prior.likelihood import LikelihoodModel
+from pipeline.prior.terrain import TerrainPrior
 from tests.pipeline.gis_helpers import REGION_TOML, write_config, write_vector
 from tests.pipeline.learn_synth import sample_points
 

@@ -6,12 +6,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.grid import Grid
-from pipeline.prior import TerrainPrior
-from tracker.association import associate
+from pipeline.gis.grid import Grid
+from pipeline.prior.terrain import TerrainPrior
+from tracker.association.greedy import associate
 from tracker.cli import main
-from tracker.io import read_reports, read_tracks, write_reports, write_tracks
-from tracker.simulate import simulate
+from tracker.io.tracks import read_reports, read_tracks, write_reports, write_tracks
+from tracker.study.simulate import simulate
 
 
 def _upper(covs: np.ndarray) -> np.ndarray:

@@ -1,0 +1,175 @@
+"""Region config -> FeatureStack -> TerrainPrior, and the feature GeoTIFFs.
+
+Each input layer is read once and shared by the features that use it.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import rasterio
+from tqdm import tqdm
+
+from common.atomic import atomic_paths
+from pipeline.config.region import FeatureSpec, RegionConfig
+from pipeline.features import rasterize
+from pipeline.features.distance import distance_m
+from pipeline.features.slope import slope_classes, slope_deg
+from pipeline.features.stack import NODATA_CODE, Feature, FeatureStack
+from pipeline.gis.layers import LayerError, VectorLayer, read_dem, read_raster, read_vector
+from pipeline.prior.likelihood import LikelihoodModel
+from pipeline.prior.terrain import PriorError, TerrainPrior
+
+
+class _Layers:
+    """Vector layers of one config read on first use (with the union of attributes asked for)."""
+
+    def __init__(self, config: RegionConfig) -> None:
+        self.config = config
+        self._vectors: dict[tuple[str, tuple[str, ...]], VectorLayer] = {}
+
+    def vector(self, name: str, columns: tuple[str, ...] = ()) -> VectorLayer:
+        key = (name, columns)
+        if key not in self._vectors:
+            self._vectors[key] = read_vector(self.config.layers[name], self.config.grid, list(columns))
+        return self._vectors[key]
+
+    def geometries(self, names: tuple[str, ...]) -> np.ndarray:
+        parts = [self.vector(n).geometries for n in names]
+        return np.concatenate(parts) if parts else np.empty(0, dtype=object)
+
+
+def _mask_feature(spec: FeatureSpec, layers: _Layers, grid) -> Feature:
+    m = rasterize.mask(layers.geometries(spec.layers), grid, spec.buffer_m, spec.all_touched)
+    return Feature(spec.name, m.astype(np.int16), "categorical", labels={0: spec.labels[0], 1: spec.labels[1]})
+
+
+def _distance_feature(spec: FeatureSpec, layers: _Layers, grid) -> Feature:
+    # burn on the grid grown by margin_m on each side, so features just outside the bounds count
+    pad_r, pad_c = int(np.ceil(spec.margin_m / grid.dy)), int(np.ceil(spec.margin_m / grid.dx))
+    padded = grid.window_grid(-pad_r, -pad_c, grid.height + 2 * pad_r, grid.width + 2 * pad_c)
+    m = rasterize.mask(layers.geometries(spec.layers), padded, spec.buffer_m, spec.all_touched)
+    d = distance_m(m, grid.dx, grid.dy, spec.max_distance_m)[pad_r:pad_r + grid.height, pad_c:pad_c + grid.width]
+    return Feature(spec.name, np.ascontiguousarray(d), "continuous", units="m")
+
+
+def _slope_feature(spec: FeatureSpec, layers: _Layers, grid) -> Feature:
+    layer = layers.config.layers[spec.layer]
+    if layer.kind == "pointcloud":
+        from pipeline.gis.lidar import lidar_surface  # open3d is an optional extra
+
+        # a point cloud carries no CRS: its x, y are taken to be in the grid CRS (metres)
+        slope = lidar_surface(layer.path, grid).slope
+    else:
+        slope = slope_deg(read_dem(layer, grid), grid.dx, grid.dy)
+    return Feature(spec.name, slope, "continuous", units="deg")
+
+
+def _categories_feature(spec: FeatureSpec, layers: _Layers, grid) -> Feature:
+    layer = layers.vector(spec.layer, (spec.attribute,))
+    values = np.array([str(v) for v in layer.attributes[spec.attribute]], dtype=object)
+    classes = list(spec.classes) or sorted(set(values.tolist()))
+    unknown = sorted(set(values.tolist()) - set(classes))
+    if unknown:
+        src = layers.config.layers[spec.layer]
+        raise LayerError(
+            f"{src.path} ([layers.{spec.layer}]): attribute {spec.attribute!r} has value {unknown[0]!r}, "
+            f"not in [features.{spec.name}] classes {classes}"
+        )
+    lookup = {c: k for k, c in enumerate(classes)}
+    labels = dict(enumerate(classes))
+    fill = NODATA_CODE
+    if spec.background is not None:
+        fill = lookup.get(spec.background, len(classes))
+        labels[fill] = spec.background
+    codes = np.array([lookup[v] for v in values], dtype=np.int32)
+    return Feature(spec.name, rasterize.categories(layer.geometries, codes, grid, fill), "categorical", labels=labels)
+
+
+def _raster_feature(spec: FeatureSpec, layers: _Layers, grid) -> Feature:
+    values = read_raster(layers.config.layers[spec.layer], grid, spec.categorical)
+    if spec.categorical:
+        return Feature(spec.name, values, "categorical", labels=dict(spec.code_labels))
+    return Feature(spec.name, values, "continuous", units=spec.units)
+
+
+def _classes_feature(spec: FeatureSpec, stack: FeatureStack) -> Feature:
+    codes = slope_classes(stack[spec.source].values, spec.breaks)
+    return Feature(spec.name, codes, "categorical", labels=dict(enumerate(spec.labels)))
+
+
+_BUILDERS = {
+    "mask": _mask_feature,
+    "distance": _distance_feature,
+    "slope": _slope_feature,
+    "categories": _categories_feature,
+    "raster": _raster_feature,
+}
+
+
+def build_features(config: RegionConfig, progress: bool = True) -> FeatureStack:
+    """All features of a region config on its grid (classes features after the features they bin)."""
+    stack = FeatureStack(config.grid)
+    layers = _Layers(config)
+    specs = sorted(config.features.values(), key=lambda f: f.type == "classes")
+    for spec in tqdm(specs, desc=f"features of {config.name}", unit="feature", disable=not progress):
+        if spec.type == "classes":
+            stack.add(_classes_feature(spec, stack))
+        else:
+            stack.add(_BUILDERS[spec.type](spec, layers, config.grid))
+    return stack
+
+
+def build_prior(stack: FeatureStack, model: LikelihoodModel, provenance: dict | None = None) -> TerrainPrior:
+    """The normalised prior r(x) ∝ Π r_i(F_i(x)) of a feature stack; ``provenance`` is stored with the model."""
+    r = model.evaluate(stack)
+    if not r.any():  # name the culprit when one table alone zeroes the grid
+        for name, term in model.terms.items():
+            if not term(stack[name]).any():
+                raise PriorError(f"[likelihood.{name}] is zero on every cell of the grid, so the prior would be zero everywhere")
+    description = model.to_dict()
+    if provenance:
+        description["provenance"] = provenance
+    return TerrainPrior.from_array(r, stack.grid, description)
+
+
+def build_region_prior(config: RegionConfig, model: LikelihoodModel | None = None, progress: bool = True) -> TerrainPrior:
+    """Features and prior of a region; ``model`` overrides the config's ``[likelihood.*]`` tables."""
+    model = model or config.model
+    if model is None:
+        raise PriorError(f"{config.path}: no [likelihood.<feature>] tables and no model given")
+    stack = build_features(config, progress)
+    return build_prior(stack, model, {"region": config.name, "config": str(config.path)})
+
+
+def write_features(stack: FeatureStack, out_dir: str | Path) -> list[Path]:
+    """One GeoTIFF per feature in ``out_dir`` (``<name>.tif``), all renamed into place together.
+
+    Categorical: int16 codes (int32 when a code needs it), nodata ``NODATA_CODE``, the labels as a JSON tag ``LABELS``;
+    continuous: float32 in the tag ``UNITS``, nodata NaN.
+    """
+    out_dir = Path(out_dir)
+    finals = [out_dir / f"{f.name}.tif" for f in stack]
+    base = {
+        "driver": "GTiff", "height": stack.grid.height, "width": stack.grid.width, "count": 1,
+        "crs": stack.grid.crs, "transform": stack.grid.transform, "compress": "deflate",
+        "tiled": True, "blockxsize": 256, "blockysize": 256,
+    }
+    with atomic_paths(*finals) as temps:
+        for f, tmp in zip(stack, temps, strict=True):
+            if f.kind == "categorical":
+                small = f.values.size == 0 or np.iinfo(np.int16).max >= f.values.max()
+                dtype = "int16" if small else "int32"
+                profile = base | {"dtype": dtype, "nodata": NODATA_CODE}
+                tags = {"LABELS": json.dumps({str(k): v for k, v in f.labels.items()})}
+                data = f.values.astype(dtype)
+            else:
+                profile = base | {"dtype": "float32", "nodata": float("nan")}
+                tags = {"UNITS": f.units}
+                data = f.values.astype(np.float32)
+            with rasterio.open(tmp, "w", **profile) as dst:
+                dst.write(data, 1)
+                dst.update_tags(FEATURE=f.name, KIND=f.kind, **tags)
+    return finals

@@ -1,0 +1,126 @@
+"""The ``[learn]`` table of a region config: how ``terrain-prior learn`` fits and evaluates.
+
+::
+
+    [learn]
+    features = ["water", "slope_class", "road_distance", "protected"]  # default: the [likelihood] tables
+    on_zero = "drop"            # points on structural zeros: "drop" (counted) or "soften"
+    soften = 0.001              # likelihood given to structural zeros when softened
+    penalty_sd = 3.0            # Gaussian prior sd on each log-likelihood (nats)
+    smooth_sd = 1.0             # ... on differences of adjacent bins of a binned term
+    bin_width = 5.0             # fine bins of distances (metres; default a quarter cell)
+    flexible = { road_distance = [0, 25, 50, 100, 200, 400, 800, 1600] }   # bins instead of the road form
+    folds = 5                   # spatial block cross-validation
+    block_size_m = 2000.0
+    bandwidths_m = [40, 80, 160, 320, 640]   # KDE candidates (default: 2 cells .. 1/5 of the grid)
+    hybrid = true               # also fit and evaluate terrain × (α + (1-α)·KDE/uniform)^γ
+
+The region's ``[likelihood.*]`` tables are the template: forms, bin edges, structural zeros (0),
+start values. The table is read here and removed before the region config is validated.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from pipeline.config.region import ConfigError, RegionConfig, parse_config
+from pipeline.prior.likelihood import read_toml
+
+_KEYS = {
+    "features", "on_zero", "soften", "penalty_sd", "smooth_sd", "bin_width", "flexible",
+    "folds", "block_size_m", "bandwidths_m", "hybrid",
+}
+
+
+@dataclass(frozen=True)
+class LearnConfig:
+    """Validated ``[learn]`` settings (defaults as in :class:`pipeline.learn.estimator.PriorEstimator`)."""
+
+    features: tuple[str, ...] | None = None
+    on_zero: str = "drop"
+    soften: float = 1e-3
+    penalty_sd: float = 3.0
+    smooth_sd: float = 1.0
+    bin_width: float | None = None
+    flexible: dict[str, list[float]] = field(default_factory=dict)
+    folds: int = 5
+    block_size_m: float = 2000.0
+    bandwidths_m: tuple[float, ...] | None = None
+    hybrid: bool = True
+
+
+def _positive(source: Path, key: str, v: object, allow_zero: bool = False) -> float:
+    ok = isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) and (v >= 0 if allow_zero else v > 0)
+    if not ok:
+        raise ConfigError(f"{source}: learn.{key}: must be a {'non-negative' if allow_zero else 'positive'} number, got {v!r}")
+    return float(v)
+
+
+def parse_learn(d: dict, source: Path) -> LearnConfig:
+    """Validate a ``[learn]`` table."""
+    if not isinstance(d, dict):
+        raise ConfigError(f"{source}: [learn] must be a table")
+    unknown = sorted(set(d) - _KEYS)
+    if unknown:
+        raise ConfigError(f"{source}: [learn]: unknown keys {unknown}; allowed {sorted(_KEYS)}")
+    kw: dict = {}
+    if "features" in d:
+        f = d["features"]
+        if not (isinstance(f, list) and f and all(isinstance(s, str) for s in f)):
+            raise ConfigError(f"{source}: learn.features: expected a list of feature names, got {f!r}")
+        kw["features"] = tuple(f)
+    if "on_zero" in d:
+        if d["on_zero"] not in ("drop", "soften"):
+            raise ConfigError(f"{source}: learn.on_zero: must be \"drop\" or \"soften\", got {d['on_zero']!r}")
+        kw["on_zero"] = d["on_zero"]
+    for key in ("soften", "penalty_sd", "block_size_m", "bin_width"):
+        if key in d:
+            kw[key] = _positive(source, key, d[key])
+    if "soften" in kw and not kw["soften"] < 1:
+        raise ConfigError(f"{source}: learn.soften: must be in (0, 1), got {kw['soften']}")
+    if "smooth_sd" in d:
+        kw["smooth_sd"] = _positive(source, "smooth_sd", d["smooth_sd"], allow_zero=True)
+    if "folds" in d:
+        if not (isinstance(d["folds"], int) and not isinstance(d["folds"], bool) and d["folds"] >= 2):
+            raise ConfigError(f"{source}: learn.folds: must be an integer >= 2, got {d['folds']!r}")
+        kw["folds"] = d["folds"]
+    if "bandwidths_m" in d:
+        b = d["bandwidths_m"]
+        if not isinstance(b, list) or not b:
+            raise ConfigError(f"{source}: learn.bandwidths_m: expected a list of metres, got {b!r}")
+        kw["bandwidths_m"] = tuple(_positive(source, "bandwidths_m", v) for v in b)
+    if "hybrid" in d:
+        if not isinstance(d["hybrid"], bool):
+            raise ConfigError(f"{source}: learn.hybrid: must be true or false, got {d['hybrid']!r}")
+        kw["hybrid"] = d["hybrid"]
+    if "flexible" in d:
+        fl = d["flexible"]
+        if not isinstance(fl, dict):
+            raise ConfigError(f"{source}: learn.flexible: expected a table feature = [left bin edges], got {fl!r}")
+        out = {}
+        for name, edges in fl.items():
+            if not (isinstance(edges, list) and edges and all(isinstance(e, int | float) and not isinstance(e, bool) for e in edges)):
+                raise ConfigError(f"{source}: learn.flexible.{name}: expected a list of numbers, got {edges!r}")
+            if any(b <= a for a, b in zip(edges, edges[1:], strict=False)):
+                raise ConfigError(f"{source}: learn.flexible.{name}: edges must increase, got {edges}")
+            out[name] = [float(e) for e in edges]
+        kw["flexible"] = out
+    return LearnConfig(**kw)
+
+
+def load_learn_config(path: str | Path) -> tuple[RegionConfig, LearnConfig]:
+    """The region config and its ``[learn]`` table (defaults when absent)."""
+    path = Path(path).resolve()
+    d = read_toml(path, "region config", ConfigError)
+    learn = parse_learn(d.pop("learn", {}), path)
+    region = parse_config(d, path)
+    if learn.features:
+        missing = [f for f in learn.features if f not in region.features]
+        if missing:
+            raise ConfigError(f"{path}: learn.features: no feature {missing[0]!r}; features are {sorted(region.features)}")
+    for name in learn.flexible:
+        if name not in region.features:
+            raise ConfigError(f"{path}: learn.flexible: no feature {name!r}; features are {sorted(region.features)}")
+    return region, learn

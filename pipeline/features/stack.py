@@ -1,0 +1,99 @@
+"""Feature grids (the paper's Features(x)): named 2-D arrays on one Grid."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from pipeline.gis.grid import Grid
+
+NODATA_CODE = -1
+"""Code of a categorical cell with no data (continuous features use NaN)."""
+
+_DENSE_CODE_RANGE = 1 << 20
+"""Code ranges narrower than this are handled with dense look-up tables instead of sorting."""
+
+
+@dataclass(frozen=True)
+class Feature:
+    """One feature grid.
+
+    ``categorical``: integer codes (int16/int32), ``NODATA_CODE`` for no data; ``labels`` maps
+    code -> name (e.g. ``{0: "dry", 1: "water"}``). ``continuous``: float values in ``units``
+    (``"m"`` for distances, ``"deg"`` for slope), NaN for no data.
+    """
+
+    name: str
+    values: np.ndarray
+    kind: Literal["categorical", "continuous"]
+    units: str = ""
+    labels: dict[int, str] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.values.ndim != 2:
+            raise ValueError(f"feature {self.name!r}: values must be 2-D, got shape {self.values.shape}")
+        if self.kind == "categorical" and not np.issubdtype(self.values.dtype, np.integer):
+            raise ValueError(f"categorical feature {self.name!r} needs integer codes, got {self.values.dtype}")
+        if self.kind not in ("categorical", "continuous"):
+            raise ValueError(f"feature {self.name!r}: kind must be categorical or continuous, got {self.kind!r}")
+
+    def label(self, code: int) -> str:
+        """Name of a category code (its number as text when unlabelled)."""
+        return self.labels.get(int(code), str(int(code)))
+
+    def codes(self) -> np.ndarray:
+        """Category codes present (excluding no data), ascending."""
+        if self.values.size == 0:
+            return np.empty(0, dtype=self.values.dtype)
+        lo, hi = int(self.values.min()), int(self.values.max())
+        if hi - lo < _DENSE_CODE_RANGE:
+            # A count over the code range is linear time; np.unique sorts all cells.
+            counts = np.bincount((self.values.ravel() - lo).astype(np.intp), minlength=hi - lo + 1)
+            present = np.flatnonzero(counts) + lo
+        else:
+            present = np.unique(self.values)
+        return present[present != NODATA_CODE]
+
+
+@dataclass
+class FeatureStack:
+    """Feature grids sharing one Grid, keyed by feature name."""
+
+    grid: Grid
+    features: dict[str, Feature] = field(default_factory=dict)
+
+    def add(self, feature: Feature) -> None:
+        if feature.values.shape != self.grid.shape:
+            raise ValueError(
+                f"feature {feature.name!r} has shape {feature.values.shape}, grid is {self.grid.shape}"
+            )
+        self.features[feature.name] = feature
+
+    def __getitem__(self, name: str) -> Feature:
+        try:
+            return self.features[name]
+        except KeyError:
+            raise KeyError(f"no feature {name!r}; have {sorted(self.features)}") from None
+
+    def __contains__(self, name: str) -> bool:
+        return name in self.features
+
+    def __iter__(self):
+        return iter(self.features.values())
+
+    def sample(self, x: np.ndarray, y: np.ndarray) -> dict[str, np.ndarray]:
+        """Feature values at map points (metres); points off the grid get no data."""
+        u, v = self.grid.to_pixel(x, y)
+        inside = (u >= 0) & (u < self.grid.width) & (v >= 0) & (v < self.grid.height)
+        r = np.where(inside, v, 0).astype(np.intp)
+        c = np.where(inside, u, 0).astype(np.intp)
+        out = {}
+        for f in self:
+            vals = f.values[r, c]
+            if f.kind == "categorical":
+                out[f.name] = np.where(inside, vals, NODATA_CODE)
+            else:
+                out[f.name] = np.where(inside, vals.astype(np.float64), np.nan)
+        return out

@@ -1,0 +1,210 @@
+"""Read input layers onto a Grid: vector layers (pyogrio -> shapely 2, reprojected) and rasters (rasterio reproject).
+
+Every failure names the file and layer. Input files are never modified: a shapefile with a stale
+index is restored on a temporary copy only when its config asks for it (``restore_index = true``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import shutil
+import tempfile
+import warnings
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pyogrio
+import pyogrio.errors
+import pyogrio.raw
+import rasterio
+import rasterio.errors
+import shapely
+from pyproj import CRS as ProjCRS
+from pyproj import Transformer
+from rasterio.crs import CRS
+from rasterio.enums import Resampling
+from rasterio.warp import reproject
+
+from pipeline.config.region import LayerSpec
+from pipeline.features.stack import NODATA_CODE
+from pipeline.gis.grid import Grid
+
+log = logging.getLogger(__name__)
+
+
+class LayerError(ValueError):
+    """An input layer that cannot be read; the message names the file and layer."""
+
+
+class LayerWarning(UserWarning):
+    """An input layer that is empty or does not touch the grid."""
+
+
+@dataclass(frozen=True)
+class VectorLayer:
+    """Geometries of one vector layer in the grid CRS (metres), with the requested attributes."""
+
+    name: str
+    geometries: np.ndarray  # shapely geometries, object array
+    attributes: dict[str, np.ndarray]
+    n_repaired: int = 0
+
+
+def _where(spec: LayerSpec) -> str:
+    """How to name a layer in messages: file, layer inside it, config key."""
+    inner = f", layer {spec.layer!r}" if spec.layer else ""
+    return f"{spec.path}{inner} ([layers.{spec.name}])"
+
+
+@contextlib.contextmanager
+def _restored_copy(path: Path) -> Iterator[Path]:
+    """A temporary copy of a shapefile's parts whose .shx GDAL rebuilds; the original stays untouched."""
+    with tempfile.TemporaryDirectory(prefix="shx-restore-") as tmp:
+        for part in path.parent.glob(path.stem + ".*"):
+            if part.suffix.lower() != ".shx":  # a missing .shx is rebuilt from the .shp
+                shutil.copyfile(part, Path(tmp) / part.name)
+        pyogrio.set_gdal_config_options({"SHAPE_RESTORE_SHX": True})
+        try:
+            yield Path(tmp) / path.name
+        finally:
+            pyogrio.set_gdal_config_options({"SHAPE_RESTORE_SHX": None})
+
+
+def _open_source(spec: LayerSpec) -> contextlib.AbstractContextManager[Path]:
+    if not spec.path.exists():
+        raise LayerError(f"{_where(spec)}: file not found")
+    if spec.restore_index and spec.path.suffix.lower() == ".shp":
+        return _restored_copy(spec.path)
+    return contextlib.nullcontext(spec.path)
+
+
+def _stale_index_hint(spec: LayerSpec, exc: Exception) -> str:
+    msg = str(exc)
+    if spec.path.suffix.lower() == ".shp" and ("shx" in msg.lower() or "corrupt" in msg.lower()):
+        return (
+            f"{_where(spec)}: unreadable shapefile, its .shx index looks stale or broken ({msg}). "
+            f"GDAL can rebuild it (config option SHAPE_RESTORE_SHX=YES); set restore_index = true "
+            f"in [layers.{spec.name}] to restore it on a temporary copy (the input is not modified)"
+        )
+    return f"{_where(spec)}: cannot read: {msg}"
+
+
+def _transformer(src: CRS | ProjCRS, dst: CRS) -> Transformer:
+    return Transformer.from_crs(ProjCRS.from_user_input(src), ProjCRS.from_user_input(dst.to_wkt()), always_xy=True)
+
+
+def read_vector(spec: LayerSpec, grid: Grid, columns: list[str] | None = None) -> VectorLayer:
+    """Read a vector layer (optionally filtered by ``spec.where``), repair it, and reproject it to ``grid.crs``.
+
+    ``columns``: attributes to keep (none by default). Empty layers and layers that miss the grid warn.
+    """
+    with _open_source(spec) as path:
+        try:
+            available = [str(n) for n in pyogrio.list_layers(path)[:, 0]]
+        except pyogrio.errors.DataSourceError as exc:
+            raise LayerError(f"{_where(spec)}: not a readable vector file: {exc}") from None
+        if spec.layer is not None and spec.layer not in available:
+            raise LayerError(f"{_where(spec)}: no layer {spec.layer!r}; the file has {available}")
+        if spec.layer is None and len(available) > 1:
+            raise LayerError(f"{_where(spec)}: the file has several layers {available}; set layer = \"...\"")
+        layer = spec.layer if spec.layer is not None else available[0]
+        try:
+            info = pyogrio.read_info(path, layer=layer)
+        except pyogrio.errors.DataLayerError as exc:
+            raise LayerError(_stale_index_hint(spec, exc)) from None
+        fields = [str(f) for f in info["fields"]]
+        missing = [c for c in columns or [] if c not in fields]
+        if missing:
+            raise LayerError(f"{_where(spec)}: no attribute {missing[0]!r}; the layer has {fields}")
+        if info["crs"] is None:
+            raise LayerError(f"{_where(spec)}: the layer has no CRS (for a shapefile, a .prj is missing); cannot place it on the grid")
+        try:
+            _, _, wkb, values = pyogrio.raw.read(
+                path, layer=layer, where=spec.where, columns=columns or [], return_fids=False
+            )
+        except pyogrio.errors.FieldError as exc:
+            raise LayerError(f"{_where(spec)}: bad attribute filter where = {spec.where!r}: {exc}") from None
+        except pyogrio.errors.DataLayerError as exc:
+            if spec.where and "sql" in str(exc).lower():
+                raise LayerError(f"{_where(spec)}: bad attribute filter where = {spec.where!r}: {exc}") from None
+            raise LayerError(_stale_index_hint(spec, exc)) from None
+    geoms = shapely.from_wkb(wkb) if wkb is not None else np.empty(0, dtype=object)
+    keep = ~shapely.is_missing(geoms) & ~shapely.is_empty(geoms)
+    if not keep.all():
+        hint = ""
+        if spec.path.suffix.lower() == ".shp" and not spec.restore_index:
+            hint = f" (a stale .shx index reads as missing shapes: try restore_index = true in [layers.{spec.name}])"
+        warnings.warn(f"{_where(spec)}: {int((~keep).sum())} of {keep.size} features have no geometry and are skipped{hint}",
+                      LayerWarning, stacklevel=2)
+    geoms = geoms[keep]
+    attributes = {c: np.asarray(v)[keep] for c, v in zip(columns or [], values, strict=True)}
+    invalid = ~shapely.is_valid(geoms)
+    n_repaired = int(invalid.sum())
+    if n_repaired:
+        geoms[invalid] = shapely.make_valid(geoms[invalid])
+        log.warning("%s: repaired %d invalid geometries with make_valid", _where(spec), n_repaired)
+    src_crs = ProjCRS.from_user_input(info["crs"])
+    if not src_crs.equals(ProjCRS.from_user_input(grid.crs.to_wkt())):
+        tr = _transformer(src_crs, grid.crs)
+        geoms = shapely.transform(geoms, lambda xy: np.column_stack(tr.transform(xy[:, 0], xy[:, 1])))
+    if geoms.size == 0:
+        warnings.warn(f"{_where(spec)}: layer is empty" + (f" after where = {spec.where!r}" if spec.where else ""),
+                      LayerWarning, stacklevel=2)
+    elif not shapely.intersects(shapely.box(*grid.bounds), geoms).any():
+        warnings.warn(f"{_where(spec)}: no geometry touches the grid {grid.bounds} ({grid.crs.to_string()})",
+                      LayerWarning, stacklevel=2)
+    return VectorLayer(spec.name, geoms, attributes, n_repaired)
+
+
+def read_raster(spec: LayerSpec, grid: Grid, categorical: bool = False) -> np.ndarray:
+    """One raster band resampled onto ``grid``: bilinear float64 with NaN no data, or (categorical)
+    nearest int32 codes with ``NODATA_CODE`` no data."""
+    if not spec.path.exists():
+        raise LayerError(f"{_where(spec)}: file not found")
+    try:
+        with rasterio.open(spec.path) as src:
+            if src.crs is None:
+                raise LayerError(f"{_where(spec)}: the raster has no CRS; cannot place it on the grid")
+            if not 1 <= spec.band <= src.count:
+                raise LayerError(f"{_where(spec)}: band {spec.band} requested, the raster has {src.count}")
+            data = src.read(spec.band)
+            src_nodata = src.nodata
+            src_transform, src_crs = src.transform, src.crs
+    except rasterio.errors.RasterioIOError as exc:
+        raise LayerError(f"{_where(spec)}: not a readable raster: {exc}") from None
+    if categorical:
+        if not np.issubdtype(data.dtype, np.integer):
+            raise LayerError(f"{_where(spec)}: categorical raster needs integer codes, got {data.dtype}")
+        src_data = data.astype(np.int32)
+        if src_nodata is not None:
+            src_data[data == src_nodata] = NODATA_CODE
+        out = np.full(grid.shape, NODATA_CODE, dtype=np.int32)
+        src_nd, dst_nd, method = NODATA_CODE, NODATA_CODE, Resampling.nearest
+    else:
+        src_data = data.astype(np.float64)
+        if src_nodata is not None:
+            src_data[data == src_nodata] = np.nan
+        out = np.full(grid.shape, np.nan, dtype=np.float64)
+        src_nd, dst_nd, method = np.nan, np.nan, Resampling.bilinear
+    reproject(
+        src_data, out, src_transform=src_transform, src_crs=src_crs, src_nodata=src_nd,
+        dst_transform=grid.transform, dst_crs=grid.crs, dst_nodata=dst_nd, resampling=method,
+    )
+    empty = (out == NODATA_CODE).all() if categorical else np.isnan(out).all()
+    if empty:
+        warnings.warn(f"{_where(spec)}: no data on the grid {grid.bounds} ({grid.crs.to_string()})",
+                      LayerWarning, stacklevel=2)
+    return out
+
+
+def read_dem(spec: LayerSpec, grid: Grid) -> np.ndarray:
+    """Elevation in metres on ``grid`` (NaN no data); a DEM with no data on the grid is an error."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", LayerWarning)
+        dem = read_raster(spec, grid)
+    if np.isnan(dem).all():
+        raise LayerError(f"{_where(spec)}: the DEM has no data on the grid (all nodata or off the grid {grid.bounds})")
+    return dem

@@ -1,0 +1,57 @@
+"""Past target locations as (N, 2) map coordinates in metres on a grid's CRS.
+
+Vector files (GeoPackage, Shapefile, GeoJSON) go through :func:`pipeline.gis.layers.read_vector`
+(reprojected to the grid CRS); polygons and lines become their centroids *after* reprojection, so
+centroids are taken in metres. CSV files need ``x`` and ``y`` columns (names configurable), in the
+grid's CRS unless ``crs`` says otherwise.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import shapely
+from pyproj import CRS as ProjCRS
+from pyproj import Transformer
+
+from pipeline.config.region import LayerSpec
+from pipeline.gis.grid import Grid
+from pipeline.gis.layers import read_vector
+
+
+def read_targets(
+    path: str | Path, grid: Grid, layer: str | None = None, x: str = "x", y: str = "y", crs: str | None = None
+) -> np.ndarray:
+    """Target points (N, 2) in metres in ``grid.crs``; ``layer`` picks a layer of a multi-layer file."""
+    path = Path(path)
+    if not path.exists():
+        raise ValueError(f"{path}: targets file not found")
+    if path.suffix.lower() == ".csv":
+        return _read_csv(path, grid, x, y, crs)
+    geoms = read_vector(LayerSpec("targets", path, "vector", layer=layer), grid).geometries
+    if geoms.size == 0:
+        raise ValueError(f"{path}" + (f", layer {layer!r}" if layer else "") + ": no target geometries")
+    pts = shapely.get_coordinates(shapely.centroid(geoms))
+    if len(pts) != len(geoms):
+        raise ValueError(f"{path}: some target geometries have no centroid")
+    return pts
+
+
+def _read_csv(path: Path, grid: Grid, x: str, y: str, crs: str | None) -> np.ndarray:
+    try:
+        table = np.genfromtxt(path, delimiter=",", names=True, dtype=np.float64, encoding="utf-8")
+    except ValueError as exc:
+        raise ValueError(f"{path}: not a readable CSV: {exc}") from None
+    names = table.dtype.names or ()
+    missing = [c for c in (x, y) if c not in names]
+    if missing:
+        raise ValueError(f"{path}: no column {missing[0]!r}; the CSV has {list(names)}")
+    pts = np.column_stack([np.atleast_1d(table[x]), np.atleast_1d(table[y])])
+    bad = np.flatnonzero(~np.isfinite(pts).all(axis=1))
+    if bad.size:
+        raise ValueError(f"{path}: non-numeric or missing {x}/{y} on data rows {(bad + 1)[:10].tolist()}")
+    if crs is not None:
+        tr = Transformer.from_crs(ProjCRS.from_user_input(crs), ProjCRS.from_user_input(grid.crs.to_wkt()), always_xy=True)
+        pts = np.column_stack(tr.transform(pts[:, 0], pts[:, 1]))
+    return pts

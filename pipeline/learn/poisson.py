@@ -1,0 +1,346 @@
+"""Penalised inhomogeneous-Poisson log-likelihood of points on sufficient statistics, and its fit.
+
+For points x_1..x_n and r(x) = Π_t r_t(x), the normalised-density log-likelihood is
+ℓ(θ) = Σ_i log r(x_i) − n log Σ_c A_c r(c), the Poisson process likelihood with the intercept
+profiled out. Parameters per term (:class:`TermParams`): log r of each free level of a discrete
+term (reference level fixed at 0, structural zeros fixed), (log rmd, mv) for the road form, γ for
+the hybrid's KDE term. The penalty is a Gaussian prior: ½ Σ θ²/σ² on the discrete terms'
+log-likelihoods (σ = ``penalty_sd``) plus ½ Σ (Δ log r)²/τ² between adjacent bins of a binned term
+(τ = ``smooth_sd``). The fit minimises −(ℓ − penalty) with scipy's L-BFGS-B (bounds: rmd > 0,
+mv in (0, 1], γ >= 0);
+standard errors come from the inverse of the observed information, the Hessian of −(ℓ − penalty),
+by central differences of the analytic gradient.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+from scipy import optimize
+
+from pipeline.learn.kde import KDE_EPS
+from pipeline.learn.sufficient import DISCRETE_FORMS, CellStats, PointStats, Term
+from pipeline.prior.likelihood import road_likelihood
+
+MV_MIN = 1e-6
+"""Lower bound of mv in the fit (the form needs mv > 0)."""
+RMD_BOUNDS_M = (1e-2, 1e7)
+
+
+@dataclass
+class TermParams:
+    """How one term's parameters enter log r. ``fixed`` holds log r of every discrete level
+    (reference 0, structural zeros −inf or log of the softened value), overwritten at ``free``."""
+
+    term: Term
+    free: np.ndarray  # discrete: free level indices
+    fixed: np.ndarray  # discrete: log r per level, plus log(nodata) last
+    x0: np.ndarray
+    bounds: list[tuple[float | None, float | None]]
+    bin_value: np.ndarray | None = None  # continuous: area-weighted mean value per fine bin (cells)
+    alpha: float = 0.01  # KDE term: fixed share of the uniform density mixed into the KDE
+    has_area: np.ndarray | None = None  # discrete: levels with area on the grid
+
+    @property
+    def size(self) -> int:
+        return len(self.x0)
+
+    def lut(self, theta: np.ndarray) -> np.ndarray:
+        """Discrete: log r per level with log(nodata) last, so index −1 (no data) picks it."""
+        out = self.fixed.copy()
+        out[self.free] = theta
+        return out
+
+    def logr(self, theta: np.ndarray, index: np.ndarray, value: np.ndarray) -> np.ndarray:
+        """log r per row (points, or fine bins) from level indices and exact values."""
+        t = self.term
+        if t.form in DISCRETE_FORMS:
+            return self.lut(theta)[index]
+        lognd = self.lut_nodata
+        if t.form == "road":
+            r = road_likelihood(value, np.exp(theta[0]), theta[1])
+            with np.errstate(divide="ignore"):
+                return np.where(index >= 0, np.log(r), lognd)
+        return np.where(index >= 0, kde_logr(np.nan_to_num(value), theta[0], self.alpha), lognd)
+
+    def cell_lut(self, theta: np.ndarray) -> np.ndarray:
+        """log r per level (fine bin for continuous terms) with log(nodata) last."""
+        if self.term.form in DISCRETE_FORMS:
+            return self.lut(theta)
+        n = len(self.bin_value)
+        return np.append(self.logr(theta, np.zeros(n, np.int64), self.bin_value), self.lut_nodata)
+
+    @property
+    def lut_nodata(self) -> float:
+        return float(np.log(self.term.nodata)) if self.term.nodata > 0 else -np.inf
+
+    def grad(self, theta: np.ndarray, index: np.ndarray, value: np.ndarray, weight: np.ndarray) -> np.ndarray:
+        """Σ_i weight_i ∂ log r_i / ∂θ over rows (distinct point rows)."""
+        t = self.term
+        ok = index >= 0
+        if t.form in DISCRETE_FORMS:
+            return self.grad_levels(theta, np.bincount(index[ok], weights=weight[ok], minlength=t.n_levels))
+        return self._grad_values(theta, value[ok], weight[ok])
+
+    def grad_levels(self, theta: np.ndarray, per_level: np.ndarray) -> np.ndarray:
+        """As :meth:`grad` from the weights summed per level (fine bin for continuous terms)."""
+        if self.term.form in DISCRETE_FORMS:
+            return per_level[self.free]
+        return self._grad_values(theta, self.bin_value, per_level)
+
+    def _grad_values(self, theta: np.ndarray, d: np.ndarray, w: np.ndarray) -> np.ndarray:
+        if self.term.form == "road":
+            rmd, mv = np.exp(theta[0]), theta[1]
+            z = d / rmd - 1.0
+            g = np.exp(-0.5 * z * z)
+            r = (1.0 - mv) * g + mv
+            d_logrmd = (1.0 - mv) * g * z * d / rmd / r
+            d_mv = (1.0 - g) / r
+            return np.array([np.dot(w, d_logrmd), np.dot(w, d_mv)])
+        return np.array([np.dot(w, kde_logr(d, 1.0, self.alpha))])
+
+
+def term_params(
+    term: Term, level_area: np.ndarray, soften: float | None, start: dict | None = None, bin_value: np.ndarray | None = None
+) -> TermParams:
+    """Parameters of one term. Discrete levels with no area are fixed at log r = 0 (unidentified).
+
+    ``soften``: structural zeros get this fixed likelihood instead of 0. ``start``: initial values
+    (``{"logr": array per level}`` or ``{"rmd":, "mv":}`` or ``{"gamma":, "alpha":}``, α fixed).
+    """
+    start = start or {}
+    if term.form in DISCRETE_FORMS:
+        n = term.n_levels
+        fixed = np.zeros(n + 1)
+        zeros = np.array(sorted(term.zeros), dtype=np.int64)
+        fixed[zeros] = np.log(soften) if soften else -np.inf
+        fixed[n] = np.log(term.nodata) if term.nodata > 0 else -np.inf
+        free = np.array(
+            [k for k in range(n) if k != term.reference and k not in term.zeros and level_area[k] > 0], dtype=np.int64
+        )
+        x0 = np.asarray(start.get("logr", np.zeros(n)), dtype=np.float64)[free]
+        x0 = np.where(np.isfinite(x0), x0, 0.0)
+        return TermParams(term, free, fixed, x0, [(None, None)] * len(free), has_area=np.asarray(level_area) > 0)
+    if term.form == "road":
+        rmd = float(start.get("rmd", 100.0))
+        mv = float(np.clip(start.get("mv", 0.5), MV_MIN, 1.0))
+        b = [tuple(np.log(RMD_BOUNDS_M)), (MV_MIN, 1.0)]
+        return TermParams(term, np.zeros(0, np.int64), np.zeros(0), np.array([np.log(rmd), mv]), b, bin_value)
+    # γ >= 0: more past points nearby never makes a place less likely. Without the bound, a fit on
+    # held-out-block values learns "targets are where the other blocks' points are not" (γ < 0).
+    alpha = float(start.get("alpha", 0.01))
+    if not 0 < alpha <= 1:
+        raise ValueError(f"the KDE term's uniform share must be in (0, 1], got {alpha}")
+    x0 = np.array([max(float(start.get("gamma", 0.5)), 0.0)])
+    return TermParams(term, np.zeros(0, np.int64), np.zeros(0), x0, [(0.0, None)], bin_value, alpha)
+
+
+def kde_logr(value: np.ndarray, gamma: float, alpha: float) -> np.ndarray:
+    """The hybrid's spatial term: log r = γ·log(α + (1−α)·k), k = exp(value) − KDE_EPS the KDE of
+    past points over the uniform density. α, the share of the uniform density mixed in, bounds
+    what a target far from every past one costs; γ >= 0 says how sharply targets follow past ones."""
+    k = np.exp(value) - KDE_EPS
+    return gamma * np.log(alpha + (1.0 - alpha) * k)
+
+
+@dataclass
+class Objective:
+    """−(ℓ − penalty) and its gradient over the concatenated parameters of ``params``.
+
+    ``active`` picks the terms in the model (the others are ignored: r_t = 1), which gives the
+    marginal (naive) fits on the same statistics.
+    """
+
+    cells: CellStats
+    points: PointStats
+    params: list[TermParams]
+    active: list[int]
+    penalty_sd: float
+    smooth_sd: float
+
+    def __post_init__(self) -> None:
+        sizes = [self.params[k].size for k in self.active]
+        self.offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
+        self.n = self.points.index.shape[0]
+        # The points enter only through each term's distinct (level, value) rows and their counts.
+        self._rows = [_distinct_rows(self.points.index[:, k], self.points.value[:, k]) for k in self.active]
+        self._cidx = np.ascontiguousarray(self.cells.index[:, self.active], dtype=np.int64)
+        sizes = [self.params[k].term.n_levels + 1 for k in self.active]
+        self._lut_off = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+
+    @property
+    def x0(self) -> np.ndarray:
+        return np.concatenate([self.params[k].x0 for k in self.active]) if self.active else np.zeros(0)
+
+    @property
+    def bounds(self) -> list:
+        return [b for k in self.active for b in self.params[k].bounds]
+
+    def split(self, x: np.ndarray) -> list[np.ndarray]:
+        return [x[self.offsets[j] : self.offsets[j + 1]] for j in range(len(self.active))]
+
+    def points_sum(self, x: np.ndarray) -> float:
+        """Σ_i log r(x_i) from the distinct rows."""
+        total = 0.0
+        for th, k, (idx, val, cnt) in zip(self.split(x), self.active, self._rows, strict=True):
+            total += float(cnt @ self.params[k].logr(th, idx, val))
+        return total
+
+    def log_z(self, x: np.ndarray) -> tuple[float, list[np.ndarray]]:
+        """log Σ_c A_c r_c (m²), and per active term the share A_c r_c / Z summed per level."""
+        luts = np.concatenate([self.params[k].cell_lut(th) for th, k in zip(self.split(x), self.active, strict=True)])
+        log_z, shares = _cell_pass(self._cidx, self.cells.area, luts, self._lut_off)
+        return log_z, [shares[self._lut_off[j] : self._lut_off[j + 1] - 1] for j in range(len(self.active))]
+
+    def loglik(self, x: np.ndarray) -> float:
+        """ℓ(θ): Σ log p(x_i) with p per m² (nats)."""
+        return self.points_sum(x) - self.n * self.log_z(x)[0]
+
+    def penalty(self, x: np.ndarray) -> tuple[float, np.ndarray]:
+        val, grad = 0.0, np.zeros_like(x)
+        for j, (th, k) in enumerate(zip(self.split(x), self.active, strict=True)):
+            p = self.params[k]
+            sl = slice(self.offsets[j], self.offsets[j + 1])
+            if p.term.form not in DISCRETE_FORMS:  # road and KDE parameters are bounded, not penalised
+                continue
+            val += 0.5 * float(th @ th) / self.penalty_sd**2
+            grad[sl] += th / self.penalty_sd**2
+            if p.term.form == "binned" and self.smooth_sd > 0:
+                # differences between consecutive bins that have area and are not structural
+                # zeros: an empty bin (fixed, unidentified) must not pull its neighbours to 1
+                lut = p.lut(th)[:-1]
+                used = np.flatnonzero(np.isfinite(lut) & p.has_area)
+                diff = np.diff(lut[used])
+                val += 0.5 * float(diff @ diff) / self.smooth_sd**2
+                g_lut = np.zeros(lut.shape[0])
+                np.add.at(g_lut, used[:-1], -diff / self.smooth_sd**2)
+                np.add.at(g_lut, used[1:], diff / self.smooth_sd**2)
+                grad[sl] += g_lut[p.free]
+        return val, grad
+
+    def __call__(self, x: np.ndarray) -> tuple[float, np.ndarray]:
+        """(−(ℓ − penalty), gradient), both divided by n for conditioning."""
+        log_z, wc = self.log_z(x)
+        ll = self.points_sum(x) - self.n * log_z
+        g = np.zeros_like(x)
+        for j, (th, k, (idx, val, cnt)) in enumerate(zip(self.split(x), self.active, self._rows, strict=True)):
+            p = self.params[k]
+            g[self.offsets[j] : self.offsets[j + 1]] = p.grad(th, idx, val, cnt) - self.n * p.grad_levels(th, wc[j])
+        pen, gpen = self.penalty(x)
+        return (-(ll - pen)) / self.n, (-(g - gpen)) / self.n
+
+    def hessian(self, x: np.ndarray) -> np.ndarray:
+        """Observed information: Hessian of −(ℓ − penalty) (not divided by n), central differences
+        of the analytic gradient; one-sided at a bound."""
+        k = x.shape[0]
+        h = np.empty((k, k))
+        for j, (lo, hi) in enumerate(self.bounds):
+            step = 1e-5 * max(1.0, abs(x[j]))
+            up = x.copy()
+            dn = x.copy()
+            up[j] += step
+            dn[j] -= step
+            if hi is not None and up[j] > hi:
+                up[j] = x[j]
+            if lo is not None and dn[j] < lo:
+                dn[j] = x[j]
+            h[:, j] = (self(up)[1] - self(dn)[1]) * self.n / (up[j] - dn[j])
+        return 0.5 * (h + h.T)
+
+
+@nb.njit(cache=True)
+def _cell_pass(index, area, luts, lut_off):
+    """log Z = log Σ_c A_c exp(Σ_t lut_t[index_ct]) and each level's share of Z (flat, per term
+    at ``lut_off``; no data is each term's last slot, picked by index −1)."""
+    m, n_terms = index.shape
+    lr = np.empty(m)
+    top = -np.inf
+    for c in range(m):
+        s = 0.0
+        for t in range(n_terms):
+            i = index[c, t]
+            s += luts[lut_off[t] + i] if i >= 0 else luts[lut_off[t + 1] - 1]
+        lr[c] = s
+        if s > top:
+            top = s
+    shares = np.zeros(luts.shape[0])
+    z = 0.0
+    for c in range(m):
+        w = area[c] * np.exp(lr[c] - top)
+        lr[c] = w
+        z += w
+    for c in range(m):
+        w = lr[c] / z
+        for t in range(n_terms):
+            i = index[c, t]
+            shares[lut_off[t] + i if i >= 0 else lut_off[t + 1] - 1] += w
+    return np.log(z) + top, shares
+
+
+def _distinct_rows(index: np.ndarray, value: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Distinct (level index, value) rows of one term over the points, with their counts."""
+    key = np.stack([index.astype(np.float64), np.nan_to_num(value, nan=-np.inf)], axis=1)
+    rows, cnt = np.unique(key, axis=0, return_counts=True)
+    val = np.where(np.isfinite(rows[:, 1]), rows[:, 1], np.nan)
+    return rows[:, 0].astype(np.int64), val, cnt.astype(np.float64)
+
+
+@dataclass
+class FitResult:
+    x: np.ndarray
+    cov: np.ndarray
+    loglik: float
+    penalty: float
+    success: bool
+    message: str
+    n_iter: int
+    at_bound: np.ndarray
+
+
+def _start_nonlinear(obj: Objective, x0: np.ndarray) -> np.ndarray:
+    """Pick the road and KDE terms' starts among a few values (neither form is concave)."""
+    x = x0.copy()
+    for j, k in enumerate(obj.active):
+        form = obj.params[k].term.form
+        if form not in ("road", "kde"):
+            continue
+        o = obj.offsets[j]
+        if form == "road":
+            d = obj.points.value[:, k]
+            d = d[np.isfinite(d) & (d > 0)]
+            scale = float(np.median(d)) if d.size else float(np.exp(x[o]))
+            grid = [(np.log(rmd), mv) for rmd in scale * np.geomspace(0.125, 4.0, 11) for mv in (0.05, 0.3, 0.8)]
+        else:
+            grid = [(g,) for g in (0.0, 0.25, 0.5, 1.0, 2.0)]
+        grid.append(tuple(x[o : o + obj.params[k].size]))
+        size = obj.params[k].size
+        best = min(grid, key=lambda c: obj(np.concatenate([x[:o], c, x[o + size :]]))[0])
+        x[o : o + size] = best
+    return x
+
+
+def fit(obj: Objective) -> FitResult:
+    """Minimise −(ℓ − penalty) with L-BFGS-B; covariance = inverse observed information."""
+    if obj.n == 0:
+        raise ValueError("no points left to fit (all off the grid or on structural zeros?)")
+    x0 = _start_nonlinear(obj, obj.x0)
+    if x0.size == 0:
+        return FitResult(x0, np.zeros((0, 0)), obj.loglik(x0), 0.0, True, "no free parameters", 0, np.zeros(0, bool))
+    res = optimize.minimize(
+        obj, x0, jac=True, method="L-BFGS-B", bounds=obj.bounds, options={"maxiter": 2000, "ftol": 1e-13, "gtol": 1e-9}
+    )
+    x = res.x
+    lo = np.array([b[0] if b[0] is not None else -np.inf for b in obj.bounds])
+    hi = np.array([b[1] if b[1] is not None else np.inf for b in obj.bounds])
+    at_bound = (x <= lo + 1e-9) | (x >= hi - 1e-9)
+    h = obj.hessian(x)
+    cov = np.full_like(h, np.nan)
+    inner = ~at_bound
+    if inner.any():
+        try:
+            cov[np.ix_(inner, inner)] = np.linalg.inv(h[np.ix_(inner, inner)])
+        except np.linalg.LinAlgError:
+            cov[np.ix_(inner, inner)] = np.linalg.pinv(h[np.ix_(inner, inner)])
+    return FitResult(x, cov, obj.loglik(x), obj.penalty(x)[0], bool(res.success), str(res.message), int(res.nit), at_bound)

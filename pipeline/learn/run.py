@@ -1,0 +1,228 @@
+"""``terrain-prior learn``: fit a region's likelihoods to past targets, cross-validate, write outputs.
+
+Writes ``--out model.toml`` (the likelihood tables ``terrain-prior build --model`` reads) and beside
+it ``<stem>.diagnostics.json`` (fit, standard errors, counts of dropped points, empirical ratios, CV
+scores) and ``<stem>.fit.png`` (fitted likelihoods against empirical ratios).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from sklearn.base import clone
+
+from common.atomic import atomic_paths
+from pipeline.build.region import build_features
+from pipeline.config.learn import LearnConfig, load_learn_config
+from pipeline.gis.targets import read_targets
+from pipeline.learn.estimator import SPATIAL, PriorEstimator
+from pipeline.learn.evaluate import CVResult, block_cv, default_bandwidths
+from pipeline.learn.kde import block_ids, fit_kde_cv
+from pipeline.learn.plots import plot_fit
+from pipeline.learn.sufficient import DISCRETE_FORMS
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class LearnReport:
+    """What ``learn`` fitted and measured, and where it wrote it."""
+
+    estimator: PriorEstimator
+    naive: PriorEstimator
+    hybrid: PriorEstimator | None
+    cv: CVResult | None
+    paths: dict[str, Path]
+    settings: LearnConfig
+
+    def table(self) -> str:
+        """Fitted likelihoods with 95% intervals beside the naive fit, then the CV scores."""
+        est, nv = self.estimator, self.naive
+        lines = [f"{'feature':<16}{'level':<12}{'ML':>10}  {'95% CI':<22}{'naive':>10}"]
+        for t, p in zip(est.terms_, est.params_, strict=True):
+            f = t.feature
+            if t.form in DISCRETE_FORMS:
+                for k, lv in enumerate(t.levels):
+                    v, nvv = est.likelihoods_[f][lv], nv.likelihoods_[f][lv]
+                    if not p.has_area[k]:
+                        lines.append(f"{f:<16}{lv:<12}{v:>10.4g}  {'no area: not fitted':<22}{nvv:>10.4g}")
+                    elif k in t.zeros:
+                        note = "structural zero" if v == 0 else f"softened zero {v:g}"
+                        lines.append(f"{f:<16}{lv:<12}{v:>10.4g}  {note:<22}{nvv:>10.4g}")
+                    elif k == t.reference:
+                        lines.append(f"{f:<16}{lv:<12}{v:>10.4g}  {'reference':<22}{nvv:>10.4g}")
+                    else:
+                        lo, hi = est.ci_[f][lv]
+                        lines.append(f"{f:<16}{lv:<12}{v:>10.4g}  [{lo:.4g}, {hi:.4g}]".ljust(50) + f"{nvv:>10.4g}")
+            else:
+                for key in est.likelihoods_[f]:
+                    lo, hi = est.ci_[f][key]
+                    lines.append(f"{f:<16}{key:<12}{est.likelihoods_[f][key]:>10.4g}  [{lo:.4g}, {hi:.4g}]".ljust(50)
+                                 + f"{nv.likelihoods_[f][key]:>10.4g}")
+        lines.append(
+            f"points: {est.n_points_} read, {est.n_used_} used, {est.n_off_grid_} off the grid, "
+            f"{est.n_on_zero_} on structural zeros {est.on_zero_detail_ or ''} ({est.on_zero})"
+        )
+        if self.hybrid is not None:
+            p = self.hybrid.likelihoods_[SPATIAL]
+            lines.append(f"hybrid: terrain x (alpha + (1 - alpha) KDE/uniform)^gamma, gamma = {p['gamma']:.3f} "
+                         f"(alpha = {p['alpha']:g}), KDE bandwidth {self.hybrid.spatial_bandwidth_:.0f} m")
+        if self.cv is not None:
+            s = self.cv.summary()
+            lines.append(
+                f"spatial block CV: {s['folds']} folds of {s['block_size_m']:g} m blocks, "
+                f"held-out nats/point over uniform ({s['uniform_nats']:.3f} nats/point):"
+            )
+            lines.append(f"  {'model':<10}{'pooled':>9}{'mean':>9}{'sd':>8}{'min':>9}{'max':>9}")
+            for m, gsum in s["gain_nats"].items():
+                lines.append(f"  {m:<10}{gsum['pooled']:>9.3f}{gsum['mean']:>9.3f}{gsum['sd']:>8.3f}{gsum['min']:>9.3f}{gsum['max']:>9.3f}")
+            if "hybrid_fold_wins" in s:
+                wins = ", ".join(f"{m} {w}/{s['folds']}" for m, w in s["hybrid_fold_wins"].items())
+                lines.append(f"  hybrid beats per fold: {wins}")
+        return "\n".join(lines)
+
+
+def _jsonable(obj):
+    """NaN/inf -> None, numpy -> Python, tuples -> lists (strict JSON)."""
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist())
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+def diagnostics(report: LearnReport) -> dict:
+    """Everything the fit knows, as strict JSON."""
+    est = report.estimator
+
+    def fit_info(e: PriorEstimator) -> dict:
+        return {
+            "likelihoods": e.likelihoods_, "stderr": e.stderr_, "ci95": e.ci_,
+            "loglik_nats": e.loglik_, "penalty_nats": e.penalty_,
+            "converged": [r.success for r in e.fit_results_], "messages": [r.message for r in e.fit_results_],
+            "iterations": [r.n_iter for r in e.fit_results_], "at_bound": [r.at_bound for r in e.fit_results_],
+            "seconds": e.fit_seconds_, "pass_seconds": e.pass_seconds_,
+        }
+
+    out = {
+        "points": {"read": est.n_points_, "used": est.n_used_, "off_grid": est.n_off_grid_,
+                   "on_structural_zero": est.n_on_zero_, "on_zero_detail": est.on_zero_detail_, "policy": est.on_zero},
+        "settings": {k: v for k, v in est.get_params().items() if k != "template"},
+        "units": "likelihoods relative to the reference level (1); stderr of categorical/binned values "
+                 "is of log r (nats); road rmd in metres; scores in nats per point, densities per m^2",
+        "ml": fit_info(est),
+        "naive": fit_info(report.naive),
+        "empirical": est.empirical(),
+        "cell_combinations": int(len(est.cell_stats_.area)),
+    }
+    if report.hybrid is not None:
+        out["hybrid"] = fit_info(report.hybrid) | {"bandwidth_m": report.hybrid.spatial_bandwidth_,
+                                                   "bandwidth_loglik": report.hybrid.bandwidth_loglik_,
+                                                   "block_m": report.hybrid.spatial_block,
+                                                   "folds": report.hybrid.spatial_folds}
+    if report.cv is not None:
+        out["cv"] = report.cv.summary()
+    return _jsonable(out)
+
+
+def learn_region(
+    region: str | Path,
+    targets: str | Path,
+    out: str | Path,
+    layer: str | None = None,
+    x: str = "x",
+    y: str = "y",
+    targets_crs: str | None = None,
+    cv: bool = True,
+    hybrid_prior: str | Path | None = None,
+    progress: bool = True,
+    tiled: bool = False,
+    scheduler: str | None = None,
+    tile: int = 1024,
+) -> LearnReport:
+    """Fit, evaluate and write (see the module doc). ``hybrid_prior``: also write the hybrid
+    prior GeoTIFF there (the spatial term cannot be expressed as a likelihood table).
+
+    ``tiled`` (implied by ``scheduler``, a Dask scheduler address): the statistics are computed tile
+    by tile (``tile`` cells a side) on Dask, so the grid is never held whole; the ML and naive fits
+    are the same, but the cross-validation and the hybrid, which need the whole grid, are skipped.
+    """
+    config, lc = load_learn_config(region)
+    if config.model is None and lc.features is None:
+        raise ValueError(f"{config.path}: no [likelihood.*] template and no learn.features; nothing says what to fit")
+    tiled = tiled or scheduler is not None
+    if tiled and hybrid_prior is not None:
+        raise ValueError("--hybrid-prior needs the whole grid (the KDE term); it cannot be used with --tiled / --scheduler")
+    pts = read_targets(targets, config.grid, layer, x, y, targets_crs)
+    est = PriorEstimator(
+        template=config.model, features=lc.features, penalty_sd=lc.penalty_sd, smooth_sd=lc.smooth_sd,
+        on_zero=lc.on_zero, soften=lc.soften, flexible=lc.flexible or None, bin_width=lc.bin_width,
+    )
+    if tiled:
+        return _learn_tiled(config, lc, est, pts, targets, out, scheduler, tile, cv, progress)
+    stack = build_features(config, progress)
+    est.fit(stack, pts)
+    naive = clone(est).set_params(method="naive").fit(stack, pts)
+    hyb = None
+    if lc.hybrid:
+        used = pts[est.used_mask_]
+        bws = np.asarray(lc.bandwidths_m) if lc.bandwidths_m else default_bandwidths(stack)
+        bw = fit_kde_cv(used, block_ids(used, config.grid.bounds[:2], lc.block_size_m), bws).bandwidth
+        hyb = clone(est).set_params(spatial_bandwidth=float(bw), spatial_block=lc.block_size_m,
+                                    spatial_folds=lc.folds).fit(stack, pts)
+    result = None
+    if cv:
+        models = ("uniform", "naive", "terrain", "kde", "hybrid") if lc.hybrid else ("uniform", "naive", "terrain", "kde")
+        result = block_cv(stack, pts, est, lc.folds, lc.block_size_m,
+                          np.asarray(lc.bandwidths_m) if lc.bandwidths_m else None, models, progress)
+    report = _write(LearnReport(est, naive, hyb, result, _paths(out), lc), targets)
+    if hybrid_prior is not None and hyb is not None:
+        report.paths["hybrid_prior"] = hyb.prior_.write(hybrid_prior)
+    return report
+
+
+def _paths(out: str | Path) -> dict[str, Path]:
+    out = Path(out)
+    return {"model": out, "diagnostics": out.with_suffix(".diagnostics.json"), "plot": out.with_suffix(".fit.png")}
+
+
+def _write(report: LearnReport, targets: str | Path) -> LearnReport:
+    """The model TOML, diagnostics JSON and fit plot of a finished report."""
+    est, paths = report.estimator, report.paths
+    if report.cv is not None:
+        g = report.cv.summary()["gain_nats"]
+        est.model_.meta["learned"]["cv_gain_nats_over_uniform"] = {m: round(v["pooled"], 6) for m, v in g.items()}
+    est.model_.meta["learned"]["targets"] = str(Path(targets).resolve())
+    est.model_.write_toml(paths["model"])
+    with atomic_paths(paths["diagnostics"]) as (tmp,):
+        tmp.write_text(json.dumps(diagnostics(report), indent=1, allow_nan=False))
+    plot_fit(est, paths["plot"])
+    return report
+
+
+def _learn_tiled(config, lc: LearnConfig, est: PriorEstimator, pts: np.ndarray, targets, out, scheduler: str | None,
+                 tile: int, cv: bool, progress: bool) -> LearnReport:
+    """The tiled path of :func:`learn_region`: statistics per tile on Dask, then the same fits."""
+    from common.dask import get_client
+    from pipeline.tiled.learn import tiled_stats  # dask loads only for tiled learning
+
+    skipped = [what for what, on in (("the spatial block cross-validation", cv), ("the hybrid fit", lc.hybrid)) if on]
+    if skipped:
+        log.info("tiled learning: skipping %s (they need the whole grid)", " and ".join(skipped))
+    with get_client(scheduler) as client:
+        cells, points = tiled_stats(config, est, pts, client, tile, progress)
+    est.fit_stats(cells, points)
+    naive = clone(est).set_params(method="naive").fit_stats(cells, points)
+    est.model_.meta["learned"]["tiled"] = {"tile_cells": tile, "scheduler": scheduler or "local"}
+    return _write(LearnReport(est, naive, None, None, _paths(out), lc), targets)

@@ -1,0 +1,230 @@
+"""Sufficient statistics of the inhomogeneous-Poisson fit: one pass over the grid, then no cells.
+
+The log-likelihood of points x_1..x_n under p(x) = r(x) / ∫ r depends on the grid only through
+∫ r = Σ_c A_c r(c), the sum over *combinations* c of the terms' levels (categories, bins, fine
+bins of a continuous feature) of their area A_c (m²) times the likelihood there. :func:`cell_stats`
+makes that table in one chunked pass; :func:`point_stats` gives each point's levels and its exact
+continuous values. Continuous terms (the road form, a log-KDE exponent) use fine bins of width
+``Term.bin_width`` (feature units) and keep the area-weighted mean value of each bin inside each
+combination, so the only approximation is r evaluated at that mean within one fine bin.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from pipeline.features.stack import NODATA_CODE, FeatureStack
+
+TermForm = Literal["categorical", "binned", "road", "kde"]
+DISCRETE_FORMS = ("categorical", "binned")
+CONTINUOUS_FORMS = ("road", "kde")
+NODATA_INDEX = -1
+"""Level index of a no-data cell or point (its likelihood is the fixed ``Term.nodata``)."""
+
+_DENSE_KEYS = 1 << 24
+"""Largest combination-key space counted with a dense bincount; larger spaces use np.unique."""
+
+
+@dataclass(frozen=True)
+class Term:
+    """One feature's factor r_i(F_i(x)) as the fit sees it.
+
+    ``categorical``: one level per code in ``codes`` (names in ``levels``). ``binned``: one level per
+    left edge in ``edges`` (feature units, last bin open, values below the first edge in bin 0).
+    ``road``: paper 1's form in (rmd, mv). ``kde``: the hybrid's spatial term (see
+    :func:`pipeline.learn.poisson.kde_logr`) of value log(k + KDE_EPS), k a KDE over the uniform density. ``zeros`` are level
+    indices fixed at r = 0 (structural zeros); ``reference`` is the level fixed at r = 1.
+    ``bin_width`` (feature units) is the fine bin of continuous forms; ``lo`` their lowest value.
+    """
+
+    feature: str
+    form: TermForm
+    levels: tuple[str, ...] = ()
+    codes: tuple[int, ...] = ()
+    edges: tuple[float, ...] = ()
+    zeros: frozenset[int] = field(default_factory=frozenset)
+    reference: int = 0
+    nodata: float = 1.0
+    bin_width: float = 1.0
+    lo: float = 0.0
+    n_fine: int = 1
+
+    @property
+    def n_levels(self) -> int:
+        """Number of level indices (fine bins for continuous forms)."""
+        return len(self.levels) if self.form in DISCRETE_FORMS else self.n_fine
+
+    def index(self, values: np.ndarray) -> np.ndarray:
+        """Level index (int64) of feature values; ``NODATA_INDEX`` for no data."""
+        if self.form == "categorical":
+            # a look-up table over the code range: one gather per cell
+            lo = min(min(self.codes), NODATA_CODE)
+            lut = np.full(max(self.codes) - lo + 1, -2, dtype=np.int64)
+            lut[np.asarray(self.codes) - lo] = np.arange(len(self.codes))
+            lut[NODATA_CODE - lo] = NODATA_INDEX
+            v = np.asarray(values, dtype=np.int64) - lo
+            inside = (v >= 0) & (v < len(lut))
+            idx = lut[np.where(inside, v, 0)]
+            idx[~inside] = -2
+            if np.any(idx == -2):
+                bad = np.unique(np.asarray(values)[idx == -2])
+                raise ValueError(f"feature {self.feature!r}: codes {bad[:10].tolist()} are not in the term's {list(self.codes)}")
+            return idx
+        x = np.asarray(values, dtype=np.float64)
+        nan = np.isnan(x)
+        xs = np.where(nan, self.lo, x)
+        if self.form == "binned":
+            idx = np.clip(np.searchsorted(self.edges, xs, side="right") - 1, 0, len(self.edges) - 1)
+        else:
+            idx = np.clip(np.floor((xs - self.lo) / self.bin_width), 0, self.n_fine - 1).astype(np.int64)
+        return np.where(nan, NODATA_INDEX, idx)
+
+
+def with_range(term: Term, values: np.ndarray) -> Term:
+    """A continuous term whose fine bins cover the finite ``values``."""
+    if term.form not in CONTINUOUS_FORMS:
+        return term
+    finite = values[np.isfinite(values)]
+    if finite.size == 0:
+        raise ValueError(f"feature {term.feature!r}: no finite values on the grid")
+    lo, hi = float(finite.min()), float(finite.max())
+    n_fine = max(1, int(np.floor((hi - lo) / term.bin_width)) + 1)
+    return Term(**{**term.__dict__, "lo": lo, "n_fine": n_fine})
+
+
+@dataclass
+class CellStats:
+    """Area of each combination of term levels present on the grid.
+
+    ``index`` (m, T) level index per term (``NODATA_INDEX`` for no data); ``value`` (m, T) the
+    area-weighted mean feature value in the combination for continuous terms (NaN for discrete);
+    ``area`` (m,) in m²; ``n_cells`` the grid's cell count.
+    """
+
+    terms: tuple[Term, ...]
+    index: np.ndarray
+    value: np.ndarray
+    area: np.ndarray
+    cell_area: float
+    n_cells: int
+
+    @property
+    def total_area(self) -> float:
+        """Grid area in m²."""
+        return float(self.area.sum())
+
+    def bin_value(self, t: int) -> np.ndarray:
+        """Continuous term ``t``: area-weighted mean value per fine bin over all combinations."""
+        idx = self.index[:, t]
+        ok = idx >= 0
+        n = self.terms[t].n_levels
+        s = np.bincount(idx[ok], weights=(self.area * self.value[:, t])[ok], minlength=n)
+        a = np.bincount(idx[ok], weights=self.area[ok], minlength=n)
+        lo = self.terms[t].lo + self.terms[t].bin_width * (np.arange(n) + 0.5)
+        return np.where(a > 0, s / np.where(a > 0, a, 1.0), lo)
+
+    def level_area(self, t: int) -> np.ndarray:
+        """Area (m²) of each level of term ``t`` (no data excluded)."""
+        idx = self.index[:, t]
+        ok = idx >= 0
+        return np.bincount(idx[ok], weights=self.area[ok], minlength=self.terms[t].n_levels)
+
+
+@dataclass
+class PointStats:
+    """Each point's level index and exact value per term; ``inside`` marks points on the grid."""
+
+    terms: tuple[Term, ...]
+    index: np.ndarray
+    value: np.ndarray
+    inside: np.ndarray
+
+    def subset(self, mask: np.ndarray) -> PointStats:
+        return PointStats(self.terms, self.index[mask], self.value[mask], self.inside[mask])
+
+
+def _radix(terms: tuple[Term, ...]) -> np.ndarray:
+    """Mixed-radix strides of the combination key; slot 0 of each digit is no data."""
+    sizes = np.array([t.n_levels + 1 for t in terms], dtype=np.int64)
+    if np.prod(sizes.astype(np.float64)) >= 2.0**62:
+        raise ValueError(f"too many level combinations ({sizes.tolist()}); use wider fine bins")
+    return np.concatenate([[1], np.cumprod(sizes[:-1])]).astype(np.int64), sizes
+
+
+def cell_stats(stack: FeatureStack, terms: tuple[Term, ...], rows_per_chunk: int | None = None) -> CellStats:
+    """One pass over the grid: area per combination of the terms' levels (see the module doc).
+
+    Continuous terms must already have their range set (:func:`with_range`).
+    """
+    terms = tuple(terms)
+    if not terms:
+        raise ValueError("cell_stats needs at least one term")
+    strides, sizes = _radix(terms)
+    space = int(np.prod(sizes))
+    h, w = stack.grid.shape
+    rows = rows_per_chunk or max(1, (1 << 22) // w)
+    cont = [k for k, t in enumerate(terms) if t.form in CONTINUOUS_FORMS]
+    dense = space <= _DENSE_KEYS
+    if dense:
+        counts = np.zeros(space, dtype=np.int64)
+        sums = np.zeros((len(cont), space), dtype=np.float64)
+    else:
+        parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    arrays = [stack[t.feature].values for t in terms]
+    for r0 in range(0, h, rows):
+        key = np.zeros(min(rows, h - r0) * w, dtype=np.int64)
+        chunks = [a[r0 : r0 + rows].ravel() for a in arrays]
+        for k, t in enumerate(terms):
+            key += (t.index(chunks[k]) + 1) * strides[k]
+        vals = [np.nan_to_num(chunks[k].astype(np.float64)) for k in cont]
+        if dense:
+            counts += np.bincount(key, minlength=space)
+            for j, v in enumerate(vals):
+                sums[j] += np.bincount(key, weights=v, minlength=space)
+        else:
+            u, inv = np.unique(key, return_inverse=True)
+            parts.append((u, np.bincount(inv), np.array([np.bincount(inv, weights=v) for v in vals]).reshape(len(cont), -1)))
+    if dense:
+        keys = np.flatnonzero(counts)
+        n = counts[keys]
+        s = sums[:, keys]
+    else:
+        allk = np.concatenate([p[0] for p in parts])
+        keys, inv = np.unique(allk, return_inverse=True)
+        n = np.bincount(inv, weights=np.concatenate([p[1] for p in parts])).astype(np.int64)
+        s = np.array([np.bincount(inv, weights=np.concatenate([p[2][j] for p in parts])) for j in range(len(cont))]).reshape(len(cont), -1)
+    index = ((keys[:, None] // strides[None, :]) % sizes[None, :] - 1).astype(np.int64)
+    value = np.full(index.shape, np.nan)
+    for j, k in enumerate(cont):
+        value[:, k] = np.where(index[:, k] >= 0, s[j] / n, np.nan)
+    return CellStats(terms, index, value, n * stack.grid.cell_area, stack.grid.cell_area, h * w)
+
+
+def check_points(points: np.ndarray) -> np.ndarray:
+    """Points as a float (N, 2) array of x, y metres; ValueError naming bad shapes or indices."""
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 2:
+        raise ValueError(f"points must be an (N, 2) array of x, y metres, got shape {pts.shape}")
+    if not np.all(np.isfinite(pts)):
+        bad = np.flatnonzero(~np.isfinite(pts).all(axis=1))
+        raise ValueError(f"points have non-finite coordinates at indices {bad[:10].tolist()}")
+    return pts
+
+
+def point_stats(stack: FeatureStack, terms: tuple[Term, ...], points: np.ndarray) -> PointStats:
+    """Level index and exact value per term of points (N, 2) in metres in the grid's CRS."""
+    pts = check_points(points)
+    u, v = stack.grid.to_pixel(pts[:, 0], pts[:, 1])
+    inside = (u >= 0) & (u < stack.grid.width) & (v >= 0) & (v < stack.grid.height)
+    sampled = stack.sample(pts[:, 0], pts[:, 1])
+    index = np.empty((pts.shape[0], len(terms)), dtype=np.int64)
+    value = np.full(index.shape, np.nan)
+    for k, t in enumerate(terms):
+        x = sampled[t.feature]
+        index[:, k] = t.index(x)
+        if t.form in CONTINUOUS_FORMS:
+            value[:, k] = x
+    return PointStats(tuple(terms), index, value, inside)

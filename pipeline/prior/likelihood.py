@@ -1,0 +1,211 @@
+"""Likelihood tables r_i(F_i(x)) per feature, their product, and their TOML form.
+
+TOML (``[likelihood.<feature>]`` tables, the same whether hand-set or learned)::
+
+    [likelihood.water]
+    type = "categorical"
+    values = { dry = 1.0, water = 0.0 }     # keys: category labels (or codes as text); 0 = structural zero
+    nodata = 1.0                            # optional: likelihood of no-data cells (default 1, neutral)
+
+    [likelihood.road_distance]
+    type = "road"                           # paper 1: (1-mv)·exp(-((d-rmd)/rmd)²/2) + mv
+    rmd = 150.0                             # metres, > 0
+    mv = 0.2                                # in (0, 1]
+
+    [likelihood.slope_deg]
+    type = "binned"                         # piecewise constant in a continuous feature
+    edges = [0, 5, 15, 30]                  # left bin edges in the feature's units; last bin open
+    values = [1.0, 0.8, 0.4, 0.1]
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+import tomli_w
+
+from common.atomic import atomic_paths
+from pipeline.features.stack import _DENSE_CODE_RANGE, NODATA_CODE, Feature, FeatureStack
+
+
+class LikelihoodError(ValueError):
+    """A likelihood table that does not fit its feature or is malformed."""
+
+
+def read_toml(path: str | Path, what: str, error: type[ValueError]) -> dict:
+    """Parse a TOML file; a missing or malformed file raises ``error`` naming the path and ``what`` it is."""
+    path = Path(path)
+    try:
+        return tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise error(f"{path}: {what} not found") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise error(f"{path}: not valid TOML: {exc}") from None
+
+
+class Likelihood(Protocol):
+    def __call__(self, feature: Feature) -> np.ndarray:
+        """r_i(F_i(x)) on the feature's grid (float64, >= 0)."""
+
+    def to_dict(self) -> dict: ...
+
+
+@dataclass
+class CategoricalLikelihood:
+    """Likelihood per category label; 0 marks a structural zero (e.g. water)."""
+
+    values: dict[str, float]
+    nodata: float = 1.0
+
+    def __call__(self, feature: Feature) -> np.ndarray:
+        if feature.kind != "categorical":
+            raise LikelihoodError(f"feature {feature.name!r} is {feature.kind}, a categorical table needs categories")
+        codes = feature.codes()
+        values = np.empty(codes.shape[0], dtype=np.float64)
+        for k, code in enumerate(codes):
+            label = feature.label(code)
+            value = self.values.get(label, self.values.get(str(int(code))))
+            if value is None:
+                raise LikelihoodError(
+                    f"feature {feature.name!r}: category {label!r} (code {int(code)}) has no likelihood; "
+                    f"table has {sorted(self.values)}"
+                )
+            values[k] = value
+        lo = min(NODATA_CODE, int(codes[0])) if codes.size else NODATA_CODE
+        hi = int(codes[-1]) if codes.size else NODATA_CODE
+        if hi - lo < _DENSE_CODE_RANGE:
+            # Dense look-up by code offset: one gather instead of a search per cell.
+            lut = np.full(hi - lo + 1, self.nodata)
+            lut[codes - lo] = values
+            return lut[feature.values - lo]
+        lut_codes = np.append(codes, NODATA_CODE)
+        lut_vals = np.append(values, self.nodata)
+        order = np.argsort(lut_codes)
+        return lut_vals[order][np.searchsorted(lut_codes[order], feature.values)]
+
+    def to_dict(self) -> dict:
+        return {"type": "categorical", "values": dict(self.values), "nodata": self.nodata}
+
+
+def road_likelihood(d: np.ndarray, rmd: float, mv: float) -> np.ndarray:
+    """Paper 1's road-distance form (1-mv)·exp(-((d-rmd)/rmd)²/2) + mv, d in metres."""
+    z = (np.asarray(d, dtype=np.float64) - rmd) / rmd
+    return (1.0 - mv) * np.exp(-0.5 * z * z) + mv
+
+
+@dataclass
+class RoadDistanceLikelihood:
+    """Paper 1's road-distance likelihood; ``rmd`` metres (> 0), ``mv`` in (0, 1]."""
+
+    rmd: float
+    mv: float
+    nodata: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not self.rmd > 0:
+            raise LikelihoodError(f"road likelihood rmd must be > 0 metres, got {self.rmd}")
+        if not 0 < self.mv <= 1:
+            raise LikelihoodError(f"road likelihood mv must be in (0, 1], got {self.mv}")
+
+    def __call__(self, feature: Feature) -> np.ndarray:
+        if feature.kind != "continuous":
+            raise LikelihoodError(f"feature {feature.name!r} must be a continuous distance in metres")
+        d = feature.values.astype(np.float64)
+        out = road_likelihood(d, self.rmd, self.mv)
+        out[np.isnan(d)] = self.nodata
+        return out
+
+    def to_dict(self) -> dict:
+        return {"type": "road", "rmd": self.rmd, "mv": self.mv, "nodata": self.nodata}
+
+
+@dataclass
+class BinnedLikelihood:
+    """Piecewise-constant likelihood of a continuous feature; ``edges`` are left bin edges (ascending)."""
+
+    edges: list[float]
+    values: list[float]
+    nodata: float = 1.0
+
+    def __post_init__(self) -> None:
+        if len(self.edges) != len(self.values) or len(self.edges) == 0:
+            raise LikelihoodError("binned likelihood needs as many edges as values (at least one)")
+        if np.any(np.diff(self.edges) <= 0):
+            raise LikelihoodError(f"binned likelihood edges must increase, got {self.edges}")
+        if np.any(np.asarray(self.values) < 0):
+            raise LikelihoodError(f"binned likelihood values must be >= 0, got {self.values}")
+
+    def __call__(self, feature: Feature) -> np.ndarray:
+        if feature.kind != "continuous":
+            raise LikelihoodError(f"feature {feature.name!r} must be continuous for a binned table")
+        x = feature.values.astype(np.float64)
+        idx = np.clip(np.searchsorted(self.edges, x, side="right") - 1, 0, len(self.edges) - 1)
+        out = np.asarray(self.values, dtype=np.float64)[idx]
+        out[np.isnan(x)] = self.nodata
+        return out
+
+    def to_dict(self) -> dict:
+        return {"type": "binned", "edges": list(self.edges), "values": list(self.values), "nodata": self.nodata}
+
+
+_TYPES = {"categorical": CategoricalLikelihood, "road": RoadDistanceLikelihood, "binned": BinnedLikelihood}
+
+
+def likelihood_from_dict(name: str, d: dict) -> Likelihood:
+    """Build one feature's likelihood from its TOML table."""
+    d = dict(d)
+    kind = d.pop("type", None)
+    if kind not in _TYPES:
+        raise LikelihoodError(f"[likelihood.{name}]: type must be one of {sorted(_TYPES)}, got {kind!r}")
+    if kind == "categorical":
+        d["values"] = {str(k): float(v) for k, v in d.get("values", {}).items()}
+        bad = {k: v for k, v in d["values"].items() if not (np.isfinite(v) and v >= 0)}
+        if bad:
+            raise LikelihoodError(f"[likelihood.{name}]: likelihoods must be finite and >= 0, got {bad}")
+    try:
+        return _TYPES[kind](**d)
+    except TypeError as exc:
+        raise LikelihoodError(f"[likelihood.{name}]: {exc}") from exc
+
+
+@dataclass
+class LikelihoodModel:
+    """The product r(x) = Π_i r_i(F_i(x)) over named feature likelihoods."""
+
+    terms: dict[str, Likelihood] = field(default_factory=dict)
+    meta: dict = field(default_factory=dict)
+
+    def evaluate(self, stack: FeatureStack) -> np.ndarray:
+        """Unnormalised r on the stack's grid."""
+        r = np.ones(stack.grid.shape, dtype=np.float64)
+        for name, term in self.terms.items():
+            if name not in stack:
+                raise LikelihoodError(f"likelihood for {name!r} but no such feature; features: {sorted(stack.features)}")
+            r *= term(stack[name])
+        return r
+
+    def to_dict(self) -> dict:
+        out: dict = {"likelihood": {n: t.to_dict() for n, t in self.terms.items()}}
+        if self.meta:
+            out["meta"] = self.meta
+        return out
+
+    @classmethod
+    def from_dict(cls, d: dict, source: str = "config") -> LikelihoodModel:
+        tables = d.get("likelihood")
+        if not isinstance(tables, dict) or not tables:
+            raise LikelihoodError(f"{source}: no [likelihood.<feature>] tables")
+        return cls({n: likelihood_from_dict(n, t) for n, t in tables.items()}, dict(d.get("meta", {})))
+
+    def write_toml(self, path: str | Path) -> Path:
+        with atomic_paths(path) as (tmp,):
+            tmp.write_bytes(tomli_w.dumps(self.to_dict()).encode())
+        return Path(path)
+
+    @classmethod
+    def read_toml(cls, path: str | Path) -> LikelihoodModel:
+        return cls.from_dict(read_toml(path, "likelihood file", LikelihoodError), str(path))

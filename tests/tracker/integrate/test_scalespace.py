@@ -1,0 +1,203 @@
+"""The scale-space integrator's parts against closed forms and direct sums.
+
+Oracles: f_s = r ⊛ G_s summed directly over cells with scipy's normal CDF; E[Φ(ρξ - c)] =
+Φ(-c/√(1+ρ²)) for the quadrature rules; products of normal CDFs for axis-aligned Gaussians; the
+dense reference (tracker.integrate.reference) for the hand-over to the terraces.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import pytest
+from affine import Affine
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.ndimage import correlate1d, spline_filter
+from scipy.special import ndtr
+
+from pipeline.gis.grid import Grid
+from pipeline.prior.terrain import TerrainPrior
+from tests.tracker.integrate.test_terraces import (
+    CELL,
+    GRID,
+    ROUGH,
+    H,
+    W,
+    gaussian,
+    random_gaussians,
+    rough_field,
+)
+from tracker.integrate import scalespace
+from tracker.integrate.reference import reference_integrate
+from tracker.integrate.terraces import integrate, pixel_gaussians
+
+
+def smoothed(values: np.ndarray, u: np.ndarray, v: np.ndarray, s: float) -> np.ndarray:
+    """f_s at points (u, v) by the direct sum Σ_cells value · ΔΦ_u · ΔΦ_v over the whole grid."""
+    wu = np.diff(ndtr((np.arange(values.shape[1] + 1)[None, :] - u[:, None]) / s), axis=1)
+    wv = np.diff(ndtr((np.arange(values.shape[0] + 1)[None, :] - v[:, None]) / s), axis=1)
+    return np.einsum("nj,ji,ni->n", wv, values, wu)
+
+
+def spline_at(p: scalespace.Packed, k: int, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    args = (p.coef, p.offset[k], p.nu[k], p.nv[k], p.u0[k], p.v0[k], p.step[k])
+    return np.array([scalespace._bspline(*args, a, b) for a, b in zip(u, v, strict=True)])
+
+
+def test_every_level_matches_the_direct_smoothing() -> None:
+    """Level 0 is exact on cells, the others come by recursion; all agree with the direct sum."""
+    field = rough_field(seed=3, shape=(40, 56))
+    pyr = scalespace.Pyramid(field)
+    pyr.levels(4.0)  # grown in two calls: the second starts from the first's top level
+    p = pyr.levels(60.0)
+    assert p.scale[-1] >= 60.0 and np.allclose(np.diff(np.log(p.scale)), np.log(scalespace.RATIO))
+    rng = np.random.default_rng(0)
+    for k in range(p.scale.size):
+        s = p.scale[k]
+        u = rng.uniform(-3 * s, 56 + 3 * s, 60)
+        v = rng.uniform(-3 * s, 40 + 3 * s, 60)
+        exact = smoothed(field, u, v, s)
+        # cubic B-spline on a lattice of s/2: ~1e-4 of the field's jumps, which reach its maximum
+        assert np.abs(spline_at(p, k, u, v) - exact).max() <= 3e-4 * field.max(), f"level {k}, s = {s:.2f}"
+
+
+def test_levels_are_added_on_demand_and_kept() -> None:
+    prior = TerrainPrior.from_array(rough_field(seed=5), GRID)
+    pyr = scalespace.pyramid(prior, squared=False)
+    assert pyr is scalespace.pyramid(prior, squared=False)
+    assert pyr is not scalespace.pyramid(prior, squared=True)
+    small = pyr.levels(5.0)
+    assert pyr.levels(2.0) is small  # nothing to add: the same snapshot
+    big = pyr.levels(50.0)
+    assert big.scale.size > small.scale.size
+    np.testing.assert_array_equal(big.coef[: small.coef.size], small.coef)
+
+
+def test_levels_do_not_depend_on_how_the_pyramid_grew() -> None:
+    field = rough_field(seed=4, shape=(30, 41))
+    once = scalespace.Pyramid(field).levels(40.0)
+    grown = scalespace.Pyramid(field)
+    for top in (1.0, 3.0, 9.0, 40.0):
+        stepwise = grown.levels(top)
+    np.testing.assert_array_equal(stepwise.coef, once.coef)
+    np.testing.assert_array_equal(stepwise.offset, once.offset)
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (31, 33), (64, 65), (70, 5)])
+def test_blocks_round_trip(shape) -> None:
+    coef = np.random.default_rng(1).normal(size=shape).astype(np.float32)
+    flat = scalespace._tile(coef)
+    assert flat.size == -(-shape[0] // scalespace.TILE) * -(-shape[1] // scalespace.TILE) * (scalespace.TILE + 3) ** 2
+    np.testing.assert_array_equal(scalespace._untile(flat, shape), coef)
+
+
+def test_prefilter_and_node_values_match_scipy() -> None:
+    """The numba B-spline prefilter and its inverse at the nodes against scipy.ndimage."""
+    x = np.random.default_rng(2).normal(size=(37, 52))
+    np.testing.assert_allclose(scalespace._prefilter(x), spline_filter(x, order=3, mode="mirror"), atol=2e-6)
+    c = spline_filter(x, order=3, mode="mirror")
+    k = np.array([1.0, 4.0, 1.0]) / 6.0
+    np.testing.assert_allclose(scalespace._node_values(c), correlate1d(correlate1d(c, k, 0, mode="mirror"), k, 1, mode="mirror"), atol=1e-12)
+
+
+def test_threads_sharing_a_prior_get_the_same_integrals() -> None:
+    """Eight threads asking one new prior for different spreads at once (levels built concurrently)."""
+    prior = TerrainPrior.from_array(rough_field(seed=6), GRID)
+    means, covs = random_gaussians(GRID, 64, seed=9)
+    with ThreadPoolExecutor(8) as pool:
+        parts = list(pool.map(lambda i: integrate(prior, means[i::8], covs[i::8]), range(8)))
+    alone = integrate(TerrainPrior.from_array(rough_field(seed=6), GRID), means, covs)
+    for i in range(8):
+        np.testing.assert_array_equal(parts[i], alone[i::8])
+
+
+@settings(max_examples=20, deadline=None)
+@given(
+    shape=st.tuples(st.integers(1, 6), st.integers(1, 6)),
+    sigma=st.floats(np.log(0.5), np.log(50.0)).map(np.exp),
+    ecc=st.floats(1.0, 5.0),
+    angle=st.floats(0.0, np.pi),
+    fu=st.floats(0.0, 1.0),
+    fv=st.floats(0.0, 1.0),
+)
+def test_tiny_grids_match_the_reference(shape, sigma, ecc, angle, fu, fv) -> None:
+    grid = Grid("EPSG:32734", Affine(CELL, 0.0, 300_000.0, 0.0, -CELL, 6_200_000.0), *shape)
+    prior = TerrainPrior.from_array(rough_field(seed=1, shape=shape) + 0.1, grid)
+    mean, cov = gaussian(grid, sigma, ecc, angle, fu, fv)
+    ref = reference_integrate(prior, mean[None], cov[None])[0]
+    assert integrate(prior, mean[None], cov[None])[0] == pytest.approx(ref, rel=0.01)
+
+
+@pytest.mark.parametrize("rho", [0.0, 0.01, 0.2, 0.5, 0.64, 1.0, 1.59, 1.61, 3.0, 10.0, 60.0])
+def test_rules_average_smoothed_steps(rho: float) -> None:
+    """E[Φ(ρξ - c)], ξ ~ N(0,1): the step smoothed at the level's σ, every offset c."""
+    xs, ws = np.empty(scalespace.MAX_POINTS), np.empty(scalespace.MAX_POINTS)
+    n = scalespace._rule(rho, xs, ws)
+    assert n >= 1
+    c = np.linspace(-12.0, 12.0, 1201)
+    est = ndtr(xs[:n][None, :] - c[:, None]) @ ws[:n]
+    assert np.abs(est - ndtr(-c / np.sqrt(1.0 + rho * rho))).max() <= 2 * scalespace.TOL
+    assert ws[:n].sum() == pytest.approx(1.0, abs=1e-12)
+
+
+def test_rules_give_up_beyond_their_size() -> None:
+    xs, ws = np.empty(64), np.empty(64)
+    assert scalespace._rule(100.0, xs, ws) == 0
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    su=st.floats(np.log(0.05), np.log(0.99)).map(np.exp),
+    ratio=st.floats(1.0, 30.0),
+    uc=st.floats(-2.0, W + 2.0),
+    vc=st.floats(-2.0, H + 2.0),
+    transpose=st.booleans(),
+)
+def test_sub_cell_gaussians_match_the_closed_form(su, ratio, uc, vc, transpose) -> None:
+    """Smaller σ under one cell (exact smoothing on the fly): axis-aligned, ΔΦ_vᵀ r ΔΦ_u exactly."""
+    sv = su * ratio
+    if transpose:
+        su, sv = sv, su
+    exact = float(np.diff(ndtr((np.arange(H + 1) - vc) / sv)) @ ROUGH.density @ np.diff(ndtr((np.arange(W + 1) - uc) / su)))
+    if exact < 1e-3 * ROUGH.density.mean():
+        return  # on the lake or off the grid: nothing to compare relatively
+    got, counts = scalespace.integrate_pixels(ROUGH, *(np.array([x]) for x in (uc, vc, su * su, 0.0, sv * sv)), False)
+    assert counts[0] > 0
+    assert got[0] == pytest.approx(exact, rel=2e-3)
+
+
+def test_cost_is_the_same_at_every_spread() -> None:
+    """The same shape at spreads from 1 to ~10,000 cells costs the same number of look-ups."""
+    scale = np.array([1.3 * scalespace.RATIO**k for k in range(0, 56, 4)])
+    angle = 0.6
+    c, s = np.cos(angle), np.sin(angle)
+    major, minor = 2.2 * scale, scale
+    cuu = c * c * major**2 + s * s * minor**2
+    cvv = s * s * major**2 + c * c * minor**2
+    cuv = c * s * (major**2 - minor**2)
+    n = scale.size
+    _, counts = scalespace.integrate_pixels(ROUGH, np.full(n, W / 2), np.full(n, H / 2), cuu, cuv, cvv, False)
+    assert np.all(counts == counts[0]) and counts[0] > 0
+
+
+def test_needle_gaussians_are_handed_to_the_terraces() -> None:
+    """2,000:1 needs more points than the rules have: the terraces integrate it, still to 1 %."""
+    cov = np.diag([(400.0 * CELL) ** 2, (0.2 * CELL) ** 2])
+    angle = 0.3
+    rot = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
+    cov = rot @ cov @ rot.T
+    cov = 0.5 * (cov + cov.T)
+    mean = np.array([GRID.transform.c + 0.4 * W * CELL, GRID.transform.f - 0.6 * H * CELL])
+    assert scalespace.integrate_pixels(ROUGH, *(np.atleast_1d(a) for a in pixel_gaussians(ROUGH, mean[None], cov[None])), False)[1][0] == 0
+    ref = reference_integrate(ROUGH, mean[None], cov[None])[0]
+    assert integrate(ROUGH, mean[None], cov[None])[0] == pytest.approx(ref, rel=0.01)
+
+
+def test_priors_above_the_size_limit_use_the_terraces(monkeypatch) -> None:
+    means, covs = random_gaussians(GRID, 10, seed=4)
+    monkeypatch.setattr(scalespace, "MAX_CELLS", H * W - 1)
+    with pytest.warns(UserWarning, match=r"96 x 128 grid is above scalespace.MAX_CELLS .* using the terraces"):
+        got = integrate(ROUGH, means, covs)
+    np.testing.assert_array_equal(got, integrate(ROUGH, means, covs, method="terraces"))

@@ -1,0 +1,200 @@
+"""The experiment harness: τ parsing, the integral cache, per-data-set records cross-checked against
+direct scoring of fresh (uncached) tracker runs, determinism across workers, summary and outputs."""
+
+from __future__ import annotations
+
+import json
+from functools import partial
+
+import numpy as np
+import pandas as pd
+import pytest
+from affine import Affine
+
+from pipeline.gis.grid import Grid
+from pipeline.prior.terrain import TerrainPrior
+from tracker.association.greedy import associate, perfect_estimate
+from tracker.integrate.terraces import integrate
+from tracker.models.sfunc import ExpS, PoissonS
+from tracker.study.experiment import (
+    CachedIntegrator,
+    ExperimentConfig,
+    parse_taus,
+    run_dataset,
+    run_experiment,
+    summarise,
+    write_outputs,
+)
+from tracker.study.metrics import gospa, posterior_means, score
+from tracker.study.simulate import AirborneSensor, simulate
+
+TAUS = (-4.0, -1.0, 2.0)
+
+
+@pytest.fixture(scope="module")
+def prior_path(tmp_path_factory) -> str:
+    """A 6 km square prior with road-like ridges and a lake, written like `terrain-prior build` does."""
+    n = 300
+    yy, xx = np.mgrid[0:n, 0:n]
+    r = 0.15 + np.exp(-0.5 * ((xx - 0.6 * yy - 80) / 5.0) ** 2) + np.exp(-0.5 * ((yy - 170) / 5.0) ** 2)
+    r[(xx - 200) ** 2 + (yy - 90) ** 2 < 25**2] = 0.0
+    grid = Grid("EPSG:32734", Affine(20.0, 0.0, 300000.0, 0.0, -20.0, 6200000.0), n, n)
+    path = tmp_path_factory.mktemp("prior") / "prior.tif"
+    TerrainPrior.from_array(r, grid).write(path)
+    return str(path)
+
+
+def _config(**kw) -> ExperimentConfig:
+    base = dict(n_datasets=3, n_reports=40, taus=TAUS, n_targets=80, region_m=None,
+                sensor=AirborneSensor(standoff_m=15000.0))
+    base.update(kw)
+    return ExperimentConfig(**base)
+
+
+def test_parse_taus() -> None:
+    taus = parse_taus("-3:3:0.25")
+    assert len(taus) == 25 and taus[0] == -3.0 and taus[-1] == 3.0 and -1.75 in taus
+    assert parse_taus("-1,0.5") == (-1.0, 0.5)
+    for bad in ("3:-3:0.25", "-3:3:0", "a:b:c", "1:2"):
+        with pytest.raises(ValueError, match="--tau"):
+            parse_taus(bad)
+
+
+def test_config_validation() -> None:
+    with pytest.raises(ValueError, match="variants"):
+        ExperimentConfig(variants=("XX",))
+    with pytest.raises(ValueError, match="n_datasets"):
+        ExperimentConfig(n_datasets=1)
+    with pytest.raises(ValueError, match="integrator 'strips' unknown"):
+        ExperimentConfig(integrator="strips")
+
+
+def test_run_dataset_with_the_terraces_uses_them(prior_path: str) -> None:
+    """``integrator="terraces"``: the records equal a direct run with the terraces throughout."""
+    config = _config(taus=(-2.0,), variants=("TT",), integrator="terraces")
+    rec = pd.DataFrame(run_dataset(prior_path, 5, config)).iloc[0]
+    prior = TerrainPrior.read(prior_path)
+    terraces = partial(integrate, method="terraces")
+    sc = simulate(prior, 5, config.n_targets, config.n_reports, config.region_m, config.keep_fraction, config.sensor)
+    ref = perfect_estimate(prior, sc.reports, integrator=terraces)
+    res = associate(prior, sc.reports, "TT", s_model=ExpS(-2.0), integrator=terraces)
+    est = res.estimate
+    expected = score(prior, est.means, est.covs, True, ref.means, ref.covs, True, integrator=terraces)
+    assert rec.nd_hat == res.n_detected
+    assert rec.score == pytest.approx(expected, rel=1e-9, abs=1e-12)
+
+
+def test_cached_integrator_matches_terrace(prior_path: str) -> None:
+    prior = TerrainPrior.read(prior_path)
+    rng = np.random.default_rng(0)
+    means = 300000.0 + rng.uniform(1000, 5000, size=(6, 2)) + np.array([0.0, 6194000.0 - 300000.0])
+    covs = np.tile(np.diag([80.0**2, 30.0**2]), (6, 1, 1))
+    cache = CachedIntegrator(prior)
+    first = cache(prior, means[:4], covs[:4])
+    mixed = cache(prior, means[2:], covs[2:], squared=False)
+    sq = cache(prior, means, covs, squared=True)
+    np.testing.assert_array_equal(first, integrate(prior, means[:4], covs[:4]))
+    np.testing.assert_array_equal(mixed, integrate(prior, means[2:], covs[2:]))
+    np.testing.assert_array_equal(sq, integrate(prior, means, covs, squared=True))
+    assert cache.hits == 2 and cache.misses == 4 + 2 + 6
+    with pytest.raises(ValueError, match="different prior"):
+        cache(TerrainPrior.read(prior_path), means, covs)
+
+
+def test_run_dataset_matches_direct_scoring(prior_path: str) -> None:
+    config = _config(poisson_mu=150.0)
+    records = pd.DataFrame(run_dataset(prior_path, 5, config))
+    assert len(records) == 3 * (len(TAUS) + 1)
+    exact = records[records.s_model == "poisson"]
+    assert len(exact) == 3 and exact.tau.isna().all()
+    prior = TerrainPrior.read(prior_path)
+    sc = simulate(prior, 5, config.n_targets, config.n_reports, config.region_m, config.keep_fraction, config.sensor)
+    ref = perfect_estimate(prior, sc.reports)
+    nd = np.unique(sc.reports.truth).size
+    for _, rec in records.iterrows():
+        assoc = "UU" if rec.variant == "UT" else rec.variant
+        s_model = PoissonS(150.0) if rec.s_model == "poisson" else ExpS(rec.tau)
+        res = associate(prior, sc.reports, assoc, s_model=s_model)  # fresh: no shared cache
+        est = res.estimate
+        expected = score(prior, est.means, est.covs, rec.variant != "UU", ref.means, ref.covs, True)
+        assert rec.score == pytest.approx(expected, rel=1e-9, abs=1e-12)
+        assert rec.nd == nd and rec.nd_hat == res.n_detected
+        assert rec.nd_abs_error == abs(res.n_detected - nd)
+        pts = est.means if rec.variant == "UU" else posterior_means(prior, est.means, est.covs)
+        detected = sc.targets[np.unique(sc.reports.truth)]
+        assert rec.gospa_m == pytest.approx(gospa(pts, detected, config.gospa_c_m)["gospa"], rel=1e-9)
+    # UT associates exactly as UU: only the score may differ.
+    uu = records[records.variant == "UU"].set_index(["s_model", "tau"])
+    ut = records[records.variant == "UT"].set_index(["s_model", "tau"])
+    for col in ("nd_hat", "purity"):
+        pd.testing.assert_series_equal(uu[col], ut[col])
+
+
+@pytest.fixture(scope="module")
+def serial_results(prior_path: str) -> pd.DataFrame:
+    return run_experiment(prior_path, _config(), workers=1, progress=False)
+
+
+@pytest.mark.slow
+def test_experiment_deterministic_across_workers(prior_path: str, serial_results: pd.DataFrame) -> None:
+    parallel = run_experiment(prior_path, _config(), workers=2, progress=False)
+    pd.testing.assert_frame_equal(serial_results, parallel)
+
+
+def test_summary_and_outputs(serial_results: pd.DataFrame, tmp_path) -> None:
+    summary = summarise(serial_results, _config())
+    for v in ("UU", "UT", "TT"):
+        means = serial_results[serial_results.variant == v].groupby("tau")["score"].mean()
+        assert summary["variants"][v]["best_tau"] == means.idxmin()
+        assert summary["variants"][v]["best_mean_score"] == pytest.approx(means.min())
+    for form in ("table_normal", "table_t"):
+        t = summary[form]
+        assert t["TT"]["UU"] + t["UU"]["TT"] == pytest.approx(1.0)
+        assert all(0.0 <= t[a][b] <= 1.0 for a in t for b in t if a != b)
+    paths = write_outputs(serial_results, summary, tmp_path / "out", title="test")
+    back = pd.read_parquet(paths["results"])
+    pd.testing.assert_frame_equal(back, serial_results)
+    assert json.loads((tmp_path / "out" / "summary.json").read_text())["n_datasets"] == 3
+    assert len(paths["figures"]) == 6
+    assert "TT" in (tmp_path / "out" / "table1.md").read_text()
+
+
+def test_cli_experiment(prior_path: str, tmp_path, capsys) -> None:
+    from tracker.cli import main
+
+    out = tmp_path / "cli"
+    argv = ["experiment", "--prior", prior_path, "--datasets", "2", "--reports", "15", "--tau", "-2:2:2",
+            "--targets", "60", "--workers", "1", "--quiet", "--poisson-mu", "80", "--integrator", "terraces",
+            "--out", str(out)]
+    assert main(argv) == 0
+    results = pd.read_parquet(out / "results.parquet")
+    paper = results[results.s_model == "exp"]
+    assert sorted(paper["tau"].unique()) == [-2.0, 0.0, 2.0]
+    assert set(results["seed"]) == {0, 1} and len(results) == 2 * 3 * (3 + 1)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["config"]["integrator"] == "terraces"
+    exact_tt = results[(results.s_model == "poisson") & (results.variant == "TT")]["score"]
+    assert summary["variants"]["TT"]["poisson_mean_score_x10^4.5"] == pytest.approx(exact_tt.mean() * 10**4.5)
+    assert "best tau" in capsys.readouterr().out
+    assert main(["experiment", "--prior", str(tmp_path / "missing.tif"), "--out", str(out)]) == 1
+    assert "missing.tif" in capsys.readouterr().err
+    assert main(["experiment", "--prior", prior_path, "--tau", "3:-3:1", "--out", str(out)]) == 1
+    assert "--tau" in capsys.readouterr().err
+
+
+def test_rebuilt_prior_at_the_same_path_is_reread(tmp_path) -> None:
+    from pipeline.prior.terrain import PriorError
+    from tracker.study.experiment import _load_prior
+
+    grid = Grid("EPSG:32734", Affine(20.0, 0.0, 300000.0, 0.0, -20.0, 6200000.0), 50, 50)
+    path = tmp_path / "prior.tif"
+    TerrainPrior.uniform(grid).write(path)
+    first = _load_prior(str(path)).density.copy()
+    r = np.ones((50, 50))
+    r[:, :25] = 3.0
+    TerrainPrior.from_array(r, grid).write(path)
+    again = _load_prior(str(path)).density
+    np.testing.assert_allclose(first, 1.0 / (1000.0 * 1000.0), rtol=1e-6)
+    np.testing.assert_allclose(again[0, 0] / again[0, -1], 3.0, rtol=1e-6)
+    with pytest.raises(PriorError, match="missing.tif"):
+        _load_prior(str(tmp_path / "missing.tif"))

@@ -1,0 +1,416 @@
+"""Numba kernels of the tracker's block walk: the sequential decisions of paper 1, Fig. 3, over a block
+of reports whose gated pairs were scored in bulk (see :mod:`tracker.association.greedy`).
+
+Block layout (all arrays, positions in metres, times in seconds):
+
+* reports ``blk = (z (m,2), V (m,2,2), t (m,), log_unseen (m,), half_logdet_v (m,), conflicted (m,),
+  assign (m,), order, keys, grid, scratch (m,))``: ``order``/``keys`` sort the block's reports by grid
+  cell, ``grid`` = [x0, y0, cell, lam_v, nx, ny] (lam_v the largest report-covariance eigenvalue);
+* pair pool ``pool = (p_h, p_score, p_mean, p_cov, p_logc, p_next, head)``: one linked list of scored
+  (hypothesis, report) pairs per report, ``p_h = -1`` for a pair made stale by a later change;
+* hypotheses ``hyp = (means, covs, log_c, counts, times, dirty, dirty_list, low, is_low)`` with spare
+  capacity; ``low`` lists the hypotheses whose ln c may lie below ``fstate[0]`` (checked one by one by
+  the gate bound), every other hypothesis has ln c >= ``fstate[0]``;
+* ``istate = [N̂_D, n_dirty, k, pool size, n_low]``, ``fstate = [ln c floor, γ needed when widening]``;
+* ``cfg = (gamma, terrain_ratio, log_rmax, s_kind, s_param, motion, q, vel_std)``.
+
+A report is decided here only if no earlier decision of the block touched a hypothesis of its gate
+(``conflicted``) or one of its scored candidates (``dirty``); otherwise the walk stops and the caller
+refreshes the pairs of the remaining reports against the hypotheses changed since the last refresh.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from tracker.models.sfunc import log_s_ratio_code
+from tracker.types.hypotheses import MOTION_CV
+
+DONE, CONFLICT, WIDEN = 0, 1, 2
+_LOG_2PI = math.log(2.0 * math.pi)
+
+
+@njit(cache=True, inline="always")
+def _pos_at(Hm, Hc, Ht, h, t, motion, q):
+    """Position mean and covariance (x, y, c00, c01, c11) of hypothesis h predicted to time t."""
+    if motion != MOTION_CV:
+        return Hm[h, 0], Hm[h, 1], Hc[h, 0, 0], Hc[h, 0, 1], Hc[h, 1, 1]
+    dt = t - Ht[h]
+    noise = q * abs(dt) ** 3 / 3.0
+    x = Hm[h, 0] + dt * Hm[h, 2]
+    y = Hm[h, 1] + dt * Hm[h, 3]
+    c00 = Hc[h, 0, 0] + 2.0 * dt * Hc[h, 0, 2] + dt * dt * Hc[h, 2, 2] + noise
+    c01 = Hc[h, 0, 1] + dt * (Hc[h, 0, 3] + Hc[h, 1, 2]) + dt * dt * Hc[h, 2, 3]
+    c11 = Hc[h, 1, 1] + 2.0 * dt * Hc[h, 1, 3] + dt * dt * Hc[h, 3, 3] + noise
+    return x, y, c00, c01, c11
+
+
+@njit(cache=True, inline="always")
+def _in_gate(Hm, Hc, Ht, h, z, V, k, t, motion, q, gamma):
+    """Whether hypothesis h (current state) gates report k at d² <= gamma."""
+    x, y, c00, c01, c11 = _pos_at(Hm, Hc, Ht, h, t[k], motion, q)
+    s00 = c00 + V[k, 0, 0]
+    s01 = c01 + V[k, 0, 1]
+    s11 = c11 + V[k, 1, 1]
+    det = s00 * s11 - s01 * s01
+    dx = z[k, 0] - x
+    dy = z[k, 1] - y
+    return (s11 * dx * dx - 2.0 * s01 * dx * dy + s00 * dy * dy) <= gamma * det
+
+
+@njit(cache=True, inline="always")
+def _lam_max(c00, c01, c11):
+    """Largest eigenvalue of a symmetric 2x2 matrix, rounded up a little."""
+    m = 0.5 * (c00 + c11)
+    return (m + math.sqrt(0.25 * (c00 - c11) ** 2 + c01 * c01)) * (1.0 + 1e-9)
+
+
+@njit(cache=True, inline="always")
+def _pair_geom(h, k, blk, hyp, cfg, out_m, out_c, out_pm, out_pc):
+    """Kalman step of hypothesis h (current state) to report k: prediction to t_k (constant velocity),
+    then the position update. Writes the posterior state/covariance into out_m (D,), out_c (D, D) and
+    the predicted position mean/covariance into out_pm (2,), out_pc (2, 2); returns
+    ln G(z_k; H a', H A' Hᵀ + V_k). Static: this is the Gaussian product of paper 1, eq. 15."""
+    z, V, t = blk[0], blk[1], blk[2]
+    Hm, Hc, Ht = hyp[0], hyp[1], hyp[4]
+    motion, q = cfg[5], cfg[6]
+    D = Hm.shape[1]
+    a = Hm[h].copy()
+    A = Hc[h].copy()
+    if motion == MOTION_CV:
+        dt = t[k] - Ht[h]
+        d = D // 2
+        for i in range(d):
+            a[i] += dt * Hm[h, d + i]
+        # P' = F P Fᵀ + Q with F = [[I, dt I], [0, I]]: rows then columns.
+        for i in range(d):
+            for c in range(D):
+                A[i, c] += dt * A[d + i, c]
+        for r in range(D):
+            for i in range(d):
+                A[r, i] += dt * A[r, d + i]
+        adt = abs(dt)
+        for i in range(d):
+            A[i, i] += q * adt**3 / 3.0
+            A[i, d + i] += q * dt * adt / 2.0
+            A[d + i, i] += q * dt * adt / 2.0
+            A[d + i, d + i] += q * adt
+    s00 = A[0, 0] + V[k, 0, 0]
+    s01 = 0.5 * (A[0, 1] + A[1, 0]) + V[k, 0, 1]
+    s11 = A[1, 1] + V[k, 1, 1]
+    det = s00 * s11 - s01 * s01
+    i00, i01, i11 = s11 / det, -s01 / det, s00 / det
+    r0 = z[k, 0] - a[0]
+    r1 = z[k, 1] - a[1]
+    for i in range(2):
+        out_pm[i] = a[i]
+        for c in range(2):
+            out_pc[i, c] = A[i, c]
+    # K = A[:, :2] S⁻¹; posterior a + K r, A - K A[:2, :].
+    for i in range(D):
+        k0 = A[i, 0] * i00 + A[i, 1] * i01
+        k1 = A[i, 0] * i01 + A[i, 1] * i11
+        out_m[i] = a[i] + k0 * r0 + k1 * r1
+        for c in range(D):
+            out_c[i, c] = A[i, c] - (k0 * A[0, c] + k1 * A[1, c])
+    for i in range(D):
+        for c in range(i + 1, D):
+            v = 0.5 * (out_c[i, c] + out_c[c, i])
+            out_c[i, c] = v
+            out_c[c, i] = v
+    maha = r0 * (i00 * r0 + i01 * r1) + r1 * (i01 * r0 + i11 * r1)
+    return -0.5 * (maha + math.log(det)) - _LOG_2PI
+
+
+@njit(cache=True)
+def pair_geometry(rep, h, blk, hyp, cfg):
+    """Vectorised :func:`_pair_geom` over pairs (report rep[i], hypothesis h[i]): returns
+    (ln G, posterior means, posterior covariances, predicted position means, predicted position covs)."""
+    n = rep.shape[0]
+    D = hyp[0].shape[1]
+    log_g = np.empty(n)
+    post_m = np.empty((n, D))
+    post_c = np.empty((n, D, D))
+    pred_m = np.empty((n, 2))
+    pred_c = np.empty((n, 2, 2))
+    for i in range(n):
+        log_g[i] = _pair_geom(h[i], rep[i], blk, hyp, cfg, post_m[i], post_c[i], pred_m[i], pred_c[i])
+    return log_g, post_m, post_c, pred_m, pred_c
+
+
+@njit(cache=True)
+def build_report_grid(z, V, gamma):
+    """Sort the block's reports into square cells: returns (order, keys, grid) (see module doc)."""
+    m = z.shape[0]
+    lam_v = 0.0
+    for k in range(m):
+        lam_v = max(lam_v, _lam_max(V[k, 0, 0], V[k, 0, 1], V[k, 1, 1]))
+    x0 = np.min(z[:, 0]) if m else 0.0
+    y0 = np.min(z[:, 1]) if m else 0.0
+    cell = max(math.sqrt(gamma * 2.0 * lam_v), 1e-3)
+    nx = int((np.max(z[:, 0]) - x0) / cell) + 1 if m else 1
+    ny = int((np.max(z[:, 1]) - y0) / cell) + 1 if m else 1
+    keys = np.empty(m, np.int64)
+    for k in range(m):
+        keys[k] = int((z[k, 0] - x0) / cell) * ny + int((z[k, 1] - y0) / cell)
+    order = np.argsort(keys, kind="mergesort")
+    grid = np.array([x0, y0, cell, lam_v, float(nx), float(ny)])
+    return order, keys[order], grid
+
+
+@njit(cache=True)
+def _gated_reports(h, after, blk, hyp, cfg, out):
+    """Reports k > after of the block in the gate of hypothesis h (current state), into ``out``;
+    returns their number. Static: a grid query with radius √(γ(λ_max(A_h) + lam_v)), which contains
+    every gated report. Constant velocity: a scan of the later reports."""
+    z, V, t = blk[0], blk[1], blk[2]
+    order, keys, grid = blk[7], blk[8], blk[9]
+    Hm, Hc, Ht = hyp[0], hyp[1], hyp[4]
+    gamma, motion, q = cfg[0], cfg[5], cfg[6]
+    n = 0
+    if motion == MOTION_CV:
+        for k in range(after + 1, z.shape[0]):
+            if _in_gate(Hm, Hc, Ht, h, z, V, k, t, motion, q, gamma):
+                out[n] = k
+                n += 1
+        return n
+    x0, y0, cell, lam_v = grid[0], grid[1], grid[2], grid[3]
+    nx, ny = int(grid[4]), int(grid[5])
+    radius = math.sqrt(gamma * (_lam_max(Hc[h, 0, 0], Hc[h, 0, 1], Hc[h, 1, 1]) + lam_v)) * (1.0 + 1e-9)
+    cx0 = max(0, int(math.floor((Hm[h, 0] - radius - x0) / cell)))
+    cx1 = min(nx - 1, int(math.floor((Hm[h, 0] + radius - x0) / cell)))
+    cy0 = max(0, int(math.floor((Hm[h, 1] - radius - y0) / cell)))
+    cy1 = min(ny - 1, int(math.floor((Hm[h, 1] + radius - y0) / cell)))
+    for cx in range(cx0, cx1 + 1):
+        lo = np.searchsorted(keys, cx * ny + cy0)
+        hi = np.searchsorted(keys, cx * ny + cy1, side="right")
+        for i in range(lo, hi):
+            k = order[i]
+            if k > after and _in_gate(Hm, Hc, Ht, h, z, V, k, t, motion, q, gamma):
+                out[n] = k
+                n += 1
+    return n
+
+
+@njit(cache=True)
+def decide(j, cand, nc, c_h, c_score, c_mean, c_cov, c_logc, check_gate, blk, hyp, istate, fstate, cfg):
+    """Decide report j among candidate pairs ``cand[:nc]`` (indices into the c_* arrays) and apply the
+    estimation step; returns DONE, or WIDEN when the gate bound fails (nothing changed then)."""
+    z, V, t, log_unseen, half_logdet_v, conflicted, assign = blk[0], blk[1], blk[2], blk[3], blk[4], blk[5], blk[6]
+    Hm, Hc, Hlogc, Hcount, Ht, dirty, dirty_list, low, is_low = hyp
+    gamma, terrain_ratio, log_rmax, s_kind, s_param, motion, q, vel_std = cfg
+    n = istate[0]
+    best = -np.inf
+    arg = -1
+    for i in range(nc):
+        p = cand[i]
+        # Highest score; ties go to the lowest hypothesis index (the candidates come in any order).
+        if c_score[p] > best or (arg >= 0 and c_score[p] == best and c_h[p] < c_h[arg]):
+            best = c_score[p]
+            arg = p
+    unseen = log_unseen[j] + log_s_ratio_code(s_kind, s_param, n, istate[2] + 1)
+    # TT with motion: the predicted normalisers c'_q are not bounded, so the bound proves nothing
+    # there and the gate is the plain χ² gate (no widening).
+    if check_gate and n > 0 and not (terrain_ratio and motion == MOTION_CV):
+        # Out of the gate, score_q < -d²/2 - ln(2π√det V) + (ln r_max - ln c_q for TT): bound it with
+        # d² > γ and ln c_q >= fstate[0] for most hypotheses, exactly for the listed low-c ones.
+        base = -_LOG_2PI - half_logdet_v[j]
+        top = max(best, unseen)
+        need = 0.0
+        glob = base
+        if terrain_ratio:
+            glob = base + log_rmax - fstate[0]
+            for i in range(istate[4]):
+                h = low[i]
+                x, y, c00, c01, c11 = _pos_at(Hm, Hc, Ht, h, t[j], motion, q)
+                s00, s01, s11 = c00 + V[j, 0, 0], c01 + V[j, 0, 1], c11 + V[j, 1, 1]
+                dx, dy = z[j, 0] - x, z[j, 1] - y
+                d2 = (s11 * dx * dx - 2.0 * s01 * dx * dy + s00 * dy * dy) / (s00 * s11 - s01 * s01)
+                if d2 > gamma and base - 0.5 * d2 + log_rmax - Hlogc[h] > top:
+                    need = max(need, d2)
+        if glob - 0.5 * gamma > top:
+            need = max(need, 2.0 * (glob - top))
+        if need > 0.0:
+            fstate[1] = need * (1.0 + 1e-12) + 1e-9
+            return WIDEN
+    D = Hm.shape[1]
+    if arg < 0 or unseen > best:
+        h = n
+        Hm[h, :] = 0.0
+        Hc[h, :, :] = 0.0
+        Hm[h, 0] = z[j, 0]
+        Hm[h, 1] = z[j, 1]
+        for a in range(2):
+            for b in range(2):
+                Hc[h, a, b] = V[j, a, b]
+        if motion == MOTION_CV:
+            for a in range(2, D):
+                Hc[h, a, a] = vel_std * vel_std
+        Hlogc[h] = log_unseen[j]
+        Hcount[h] = 1
+        istate[0] = n + 1
+    else:
+        h = c_h[arg]
+        Hm[h, :] = c_mean[arg]
+        Hc[h, :, :] = c_cov[arg]
+        Hlogc[h] = c_logc[arg]
+        Hcount[h] += 1
+    Ht[h] = t[j]
+    if Hlogc[h] < fstate[0] and not is_low[h]:
+        low[istate[4]] = h
+        is_low[h] = True
+        istate[4] += 1
+    if not dirty[h]:
+        dirty[h] = True
+        dirty_list[istate[1]] = h
+        istate[1] += 1
+    buf = blk[10]
+    for i in range(_gated_reports(h, j, blk, hyp, cfg, buf)):
+        conflicted[buf[i]] = True
+    istate[2] += 1
+    assign[j] = h
+    return DONE
+
+
+@njit(cache=True)
+def _decide_now(j, nc, blk, pool, hyp, istate, fstate, cfg):
+    """Decide a conflicted report without leaving numba when no new integral is needed: the unchanged
+    pairs of its list plus the changed hypotheses now in its gate, scored from the current state.
+    UU/UT scores need no integral. TT (static): a changed hypothesis whose bound
+    ln G + ln r_max - ln c_q (∫G(b,B) r <= r_max) is below previouslyUnseen can neither be chosen nor
+    beat previouslyUnseen, so it needs no integral either; otherwise return CONFLICT, changing nothing."""
+    p_h, p_score, p_mean, p_cov, p_logc, p_next, head = pool
+    Hm, Hc, Hlogc, Ht, dirty, dirty_list = hyp[0], hyp[1], hyp[2], hyp[4], hyp[5], hyp[6]
+    z, V, t = blk[0], blk[1], blk[2]
+    gamma, motion, q = cfg[0], cfg[5], cfg[6]
+    D = Hm.shape[1]
+    n_fresh = 0
+    for i in range(istate[1]):
+        if _in_gate(Hm, Hc, Ht, dirty_list[i], z, V, j, t, motion, q, gamma):
+            n_fresh += 1
+    total = nc + n_fresh
+    c_h = np.empty(total, np.int64)
+    c_score = np.empty(total)
+    c_mean = np.empty((total, D))
+    c_cov = np.empty((total, D, D))
+    c_logc = np.full(total, blk[3][j])  # UU/UT: ln u; TT fresh candidates here are never chosen
+    pm = np.empty(2)
+    pc = np.empty((2, 2))
+    c = 0
+    p = head[j]
+    while p >= 0:
+        if p_h[p] >= 0 and not dirty[p_h[p]]:
+            c_h[c] = p_h[p]
+            c_score[c] = p_score[p]
+            c_mean[c] = p_mean[p]
+            c_cov[c] = p_cov[p]
+            c_logc[c] = p_logc[p]
+            c += 1
+        p = p_next[p]
+    terrain, log_rmax, s_kind, s_param = cfg[1], cfg[2], cfg[3], cfg[4]
+    if terrain and motion == MOTION_CV and n_fresh:
+        return CONFLICT  # the predicted normaliser c'_q needs an integral
+    unseen = blk[3][j] + log_s_ratio_code(s_kind, s_param, istate[0], istate[2] + 1)
+    for i in range(istate[1]):
+        h = dirty_list[i]
+        if _in_gate(Hm, Hc, Ht, h, z, V, j, t, motion, q, gamma):
+            c_h[c] = h
+            log_g = _pair_geom(h, j, blk, hyp, cfg, c_mean[c], c_cov[c], pm, pc)
+            if terrain:
+                if log_g + log_rmax - Hlogc[h] >= unseen:
+                    return CONFLICT
+                c_score[c] = -np.inf
+            else:
+                c_score[c] = log_g
+            c += 1
+    return decide(j, np.arange(total), total, c_h, c_score, c_mean, c_cov, c_logc, True, blk, hyp, istate, fstate, cfg)
+
+
+@njit(cache=True)
+def walk(start, blk, pool, hyp, istate, fstate, cfg):
+    """Decide reports start.. until one conflicts with an earlier decision of the block or needs a
+    wider gate; returns (that report, CONFLICT or WIDEN) or (m, DONE)."""
+    p_h, p_score, p_mean, p_cov, p_logc, p_next, head = pool
+    dirty = hyp[5]
+    conflicted = blk[5]
+    m = blk[0].shape[0]
+    for j in range(start, m):
+        stale = conflicted[j]
+        nc = 0
+        p = head[j]
+        while p >= 0:
+            if p_h[p] >= 0:
+                if dirty[p_h[p]]:
+                    stale = True
+                else:
+                    nc += 1
+            p = p_next[p]
+        if stale:
+            status = _decide_now(j, nc, blk, pool, hyp, istate, fstate, cfg)
+            if status != DONE:
+                return j, status
+            continue
+        cand = np.empty(nc, np.int64)
+        nc = 0
+        p = head[j]
+        while p >= 0:
+            if p_h[p] >= 0:
+                cand[nc] = p
+                nc += 1
+            p = p_next[p]
+        status = decide(j, cand, nc, p_h, p_score, p_mean, p_cov, p_logc, True, blk, hyp, istate, fstate, cfg)
+        if status != DONE:
+            return j, status
+    return m, DONE
+
+
+@njit(cache=True)
+def fresh_pairs(j, blk, hyp, istate, cfg):
+    """(report, hypothesis) pairs in the gate between reports j.. and the hypotheses changed since the
+    last refresh."""
+    dirty_list = hyp[6]
+    buf = blk[10]
+    total = 0
+    for i in range(istate[1]):
+        total += _gated_reports(dirty_list[i], j - 1, blk, hyp, cfg, buf)
+    rep = np.empty(total, np.int64)
+    hyp_idx = np.empty(total, np.int64)
+    c = 0
+    for i in range(istate[1]):
+        n = _gated_reports(dirty_list[i], j - 1, blk, hyp, cfg, buf)
+        rep[c : c + n] = buf[:n]
+        hyp_idx[c : c + n] = dirty_list[i]
+        c += n
+    return rep, hyp_idx
+
+
+@njit(cache=True)
+def link_pairs(j, pool, istate, f_rep, f_h, f_score, f_mean, f_cov, f_logc, hyp, conflicted):
+    """Retire the pairs of reports j.. whose hypothesis changed, add the fresh ones (the pool has room),
+    and start a new refresh period (no dirty hypotheses, no conflicted reports)."""
+    p_h, p_score, p_mean, p_cov, p_logc, p_next, head = pool
+    dirty, dirty_list = hyp[5], hyp[6]
+    for k in range(j, head.shape[0]):
+        p = head[k]
+        while p >= 0:
+            if p_h[p] >= 0 and dirty[p_h[p]]:
+                p_h[p] = -1
+            p = p_next[p]
+        conflicted[k] = False
+    c = istate[3]
+    for i in range(f_rep.shape[0]):
+        p_h[c] = f_h[i]
+        p_score[c] = f_score[i]
+        p_mean[c] = f_mean[i]
+        p_cov[c] = f_cov[i]
+        p_logc[c] = f_logc[i]
+        p_next[c] = head[f_rep[i]]
+        head[f_rep[i]] = c
+        c += 1
+    istate[3] = c
+    for i in range(istate[1]):
+        dirty[dirty_list[i]] = False
+    istate[1] = 0

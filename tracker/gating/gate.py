@@ -1,0 +1,378 @@
+"""Gate position reports against tracks without forming every track/report pair.
+
+A pair (track i, report j) gates when the report lies inside the track's predicted gate:
+  d^2 = dX^T (P + R)^-1 dX <= gamma            (threshold / gate probability form), or
+  S_ij = exp(-d^2/2) / ((2 pi)^(d/2) sqrt(det(P + R))) >= C   (paper 2, eq. 1-2, score form),
+with dX the report minus the track projected to the report's own time and P that projection's
+position covariance. A Euclidean coarse gate (radius from the largest eigenvalues, never smaller
+than the exact gate) finds the candidates on a bucketed uniform grid; the exact test runs fused
+in the same numba kernel. Positions in metres, times in seconds, velocities in m/s.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.stats import chi2
+
+from tracker.gating import costmodel
+from tracker.gating.exact import (
+    RADIUS_SLACK,
+    bad_covariances,
+    lambda_max_bound,
+    log_det,
+    nonfinite_rows,
+)
+from tracker.gating.grid import (
+    build_grid,
+    counting_order,
+    query_grid,
+    sort_pairs,
+    spatial_order,
+    take_rows,
+)
+from tracker.gating.reach import ReachBound, max_abs_dt, speed
+
+_MAX_BUCKETS = 6
+
+
+def gate_threshold(prob: float, dim: int) -> float:
+    """gamma such that a d^2 ~ chi^2(dim) variable falls below it with probability ``prob``."""
+    if not 0.0 < prob < 1.0:
+        raise ValueError(f"gate probability must lie in (0, 1), got prob={prob!r}")
+    return float(chi2.ppf(prob, dim))
+
+
+@dataclass(frozen=True)
+class _Scene:
+    """Validated inputs in kernel layout (tracks always carry a velocity block when moving)."""
+
+    dim: int
+    moving: bool
+    tpos: np.ndarray
+    tvel: np.ndarray
+    tcov: np.ndarray
+    ttime: np.ndarray
+    tq: np.ndarray
+    rpos: np.ndarray
+    rcov: np.ndarray
+    rtime: np.ndarray
+
+
+def gate(track_means, track_covs, report_means, report_covs, threshold: float | None = None, *,
+         prob: float | None = None, min_score: float | None = None, return_d2: bool = False,
+         report_times=None, track_times=0.0, process_noise=0.0,
+         n_projections: int | str = "auto", orientation: str = "auto",
+         buckets: int | str = "auto"):
+    """Pairs (track_idx, report_idx) that pass the exact gate, sorted by (track, report).
+
+    Static: track_means (N, d), track_covs (N, d, d), report_means (M, d), report_covs (M, d, d)
+    with d in {2, 3}. Moving: track_means (N, 2d) constant-velocity states (x, y[, z], vx, vy[, vz])
+    valid at ``track_times`` (scalar or (N,), s), track_covs (N, 2d, 2d), ``report_times`` (M,)
+    and white-noise-acceleration density ``process_noise`` q (scalar or (N,), m^2/s^3); each
+    pair is tested at the report's own time (static tracks ignore ``report_times``).
+    Exactly one of ``threshold`` (gamma on d^2),
+    ``prob`` (gate probability, gamma = chi2.ppf(prob, d)) or ``min_score`` (C in S_ij >= C).
+
+    ``n_projections``: number M_D of track-file projections across the scan ("auto": the cost
+    model in :mod:`tracker.gating.costmodel`). ``orientation``: "reports" builds the grids on reports
+    binned by time and queries them with projected tracks, "tracks" builds one grid per
+    projection on the tracks and queries it with reports (paper eq. 5 vs 6); "auto" asks the
+    cost model. ``buckets``: radius buckets of the gridded set ("auto": only when radii spread).
+    Returns (track_idx, report_idx) int64 arrays, plus d^2 when ``return_d2``.
+    """
+    if orientation not in ("auto", "reports", "tracks"):
+        raise ValueError(f"orientation must be 'auto', 'reports' or 'tracks', got {orientation!r}")
+    if n_projections != "auto" and not (isinstance(n_projections, int | np.integer)
+                                        and n_projections >= 1):
+        raise ValueError(f"n_projections must be an int >= 1 or 'auto', got {n_projections!r}")
+    if buckets != "auto" and not (isinstance(buckets, int | np.integer) and buckets >= 1):
+        raise ValueError(f"buckets must be an int >= 1 or 'auto', got {buckets!r}")
+    sc = _validate(track_means, track_covs, report_means, report_covs, report_times,
+                   track_times, process_noise)
+    gamma, w_logdet = _threshold(threshold, prob, min_score, sc.dim)
+    nt, nr = sc.tpos.shape[0], sc.rpos.shape[0]
+    if nt == 0 or nr == 0:
+        return _result(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), return_d2)
+    plan = _plan(sc, gamma, w_logdet, n_projections, orientation)
+    sc, t_perm, r_perm = _spatially_sorted(sc, plan.on_reports)
+    plan = replace(plan, bin_of_report=plan.bin_of_report[r_perm], reach=plan.reach.take(t_perm),
+                   speed=plan.speed[t_perm], lam_r=plan.lam_r[r_perm],
+                   gamma_r=plan.gamma_r[r_perm], gamma_t=plan.gamma_t[t_perm])
+    parts = []
+    by_bin, bin_start = counting_order(plan.bin_of_report, plan.m)
+    for k in range(plan.m):
+        in_bin = by_bin[bin_start[k]:bin_start[k + 1]]
+        if in_bin.size:
+            parts.append(_gate_bin(sc, plan, k, in_bin, gamma, w_logdet, buckets))
+    t_idx = np.concatenate([p[0] for p in parts]) if parts else np.zeros(0, np.int64)
+    r_idx = np.concatenate([p[1] for p in parts]) if parts else np.zeros(0, np.int64)
+    d2 = np.concatenate([p[2] for p in parts]) if parts else np.zeros(0)
+    t_idx, r_idx = t_perm[t_idx], r_perm[r_idx]
+    order = sort_pairs(t_idx, r_idx, nt)
+    return _result(t_idx[order], r_idx[order], d2[order], return_d2)
+
+
+def _spatially_sorted(sc: _Scene, on_reports: bool) -> tuple[_Scene, np.ndarray, np.ndarray]:
+    """The scene with the querying set in spatial order, and both permutations.
+
+    Neighbouring queries then touch neighbouring cells and points: the kernels are bound by
+    memory latency, not arithmetic. The gridded set is copied into cell order per bin anyway.
+    """
+    nt, nr = sc.tpos.shape[0], sc.rpos.shape[0]
+    if not on_reports:  # reports query
+        r_perm = spatial_order(sc.rpos)
+        return replace(sc, rpos=take_rows(sc.rpos, r_perm), rcov=take_rows(sc.rcov, r_perm),
+                       rtime=sc.rtime[r_perm]), np.arange(nt), r_perm
+    if not sc.moving:
+        t_perm = spatial_order(sc.tpos)
+        return replace(sc, tpos=take_rows(sc.tpos, t_perm),
+                       tcov=take_rows(sc.tcov, t_perm)), t_perm, np.arange(nr)
+    t_mid = 0.5 * (sc.rtime.min() + sc.rtime.max())
+    t_perm = spatial_order(sc.tpos + (t_mid - sc.ttime)[:, None] * sc.tvel)
+    return replace(sc, tpos=take_rows(sc.tpos, t_perm), tvel=take_rows(sc.tvel, t_perm),
+                   tcov=take_rows(sc.tcov, t_perm), ttime=sc.ttime[t_perm],
+                   tq=sc.tq[t_perm]), t_perm, np.arange(nr)
+
+
+def _result(t_idx, r_idx, d2, return_d2):
+    return (t_idx, r_idx, d2) if return_d2 else (t_idx, r_idx)
+
+
+def _threshold(threshold, prob, min_score, dim) -> tuple[float, float]:
+    """(gamma, w): a pair passes when d^2 <= gamma - w * ln det V."""
+    given = [x is not None for x in (threshold, prob, min_score)]
+    if sum(given) != 1:
+        raise ValueError("give exactly one of threshold=, prob= or min_score=")
+    if threshold is not None:
+        if not (np.isfinite(threshold) and threshold >= 0.0):
+            raise ValueError(f"threshold must be finite and >= 0, got threshold={threshold!r}")
+        return float(threshold), 0.0
+    if prob is not None:
+        return gate_threshold(prob, dim), 0.0
+    if not (np.isfinite(min_score) and min_score > 0.0):
+        raise ValueError(f"min_score must be finite and > 0, got min_score={min_score!r}")
+    return -2.0 * math.log(min_score) - dim * math.log(2.0 * math.pi), 1.0
+
+
+def _as_float(name: str, x, ndim: int) -> np.ndarray:
+    a = np.ascontiguousarray(x, dtype=float)
+    if a.ndim != ndim:
+        raise ValueError(f"{name} must have {ndim} dimensions, got shape {a.shape}")
+    return a
+
+
+def _check_finite(name: str, a: np.ndarray) -> None:
+    bad = nonfinite_rows(a.reshape(a.shape[0], a[0].size if len(a) else 0))
+    if bad.any():
+        raise ValueError(f"{name} has non-finite values at indices {np.flatnonzero(bad)[:10]}")
+
+
+def check_covariances(name: str, c: np.ndarray) -> None:
+    """ValueError naming ``name`` and the bad indices unless every (d, d) matrix is finite,
+    symmetric and positive definite."""
+    if c.shape[0] == 0:
+        return
+    bad = bad_covariances(c, 1e-9)
+    if bad.any():
+        raise ValueError(f"{name} must be finite, symmetric and positive definite; bad at "
+                         f"indices {np.flatnonzero(bad)[:10]}")
+
+
+def _validate(track_means, track_covs, report_means, report_covs, report_times, track_times,
+              process_noise) -> _Scene:
+    tm = _as_float("track_means", track_means, 2)
+    tc = _as_float("track_covs", track_covs, 3)
+    rm = _as_float("report_means", report_means, 2)
+    rc = _as_float("report_covs", report_covs, 3)
+    dim = rm.shape[1]
+    if dim not in (2, 3):
+        raise ValueError(f"report_means must be (M, 2) or (M, 3), got shape {rm.shape}")
+    if rc.shape != (rm.shape[0], dim, dim):
+        raise ValueError(f"report_covs must have shape {(rm.shape[0], dim, dim)}, got {rc.shape}")
+    if tm.shape[1] not in (dim, 2 * dim):
+        raise ValueError(f"track_means must be (N, {dim}) or (N, {2 * dim}) for {dim}-D reports,"
+                         f" got shape {tm.shape}")
+    sd = tm.shape[1]
+    if tc.shape != (tm.shape[0], sd, sd):
+        raise ValueError(f"track_covs must have shape {(tm.shape[0], sd, sd)}, got {tc.shape}")
+    moving = sd == 2 * dim
+    nt, nr = tm.shape[0], rm.shape[0]
+    if moving and report_times is None:
+        raise ValueError("track_means carry velocities: report_times= (M,) is required")
+    for name, a in (("track_means", tm), ("report_means", rm)):
+        _check_finite(name, a)
+    check_covariances("track_covs", tc)
+    check_covariances("report_covs", rc)
+    rtime = np.zeros(nr)
+    ttime = np.zeros(nt)
+    tq = np.zeros(nt)
+    if moving:
+        rtime = _as_float("report_times", report_times, 1)
+        if rtime.shape != (nr,):
+            raise ValueError(f"report_times must have shape ({nr},), got {rtime.shape}")
+        _check_finite("report_times", rtime[:, None])
+        ttime = np.ascontiguousarray(np.broadcast_to(np.asarray(track_times, float), (nt,)))
+        _check_finite("track_times", ttime[:, None])
+        tq = np.ascontiguousarray(np.broadcast_to(np.asarray(process_noise, float), (nt,)))
+        bad = ~(np.isfinite(tq) & (tq >= 0.0))
+        if bad.any():
+            raise ValueError(f"process_noise must be finite and >= 0; bad at tracks "
+                             f"{np.flatnonzero(bad)[:10]}")
+    tvel = np.ascontiguousarray(tm[:, dim:]) if moving else np.zeros((nt, dim))
+    return _Scene(dim, moving, np.ascontiguousarray(tm[:, :dim]), tvel, tc, ttime, tq, rm, rc,
+                  rtime)
+
+
+@dataclass(frozen=True)
+class _Plan:
+    """Time partition of the scan: m bins of half-width w (s), centre times, bin of each report."""
+
+    m: int
+    t_lo: float
+    width: float
+    bin_of_report: np.ndarray
+    on_reports: bool
+    reach: ReachBound
+    speed: np.ndarray
+    lam_r: np.ndarray
+    gamma_r: np.ndarray   # per-report bound on the pair's gamma (score form), else gamma
+    gamma_t: np.ndarray   # per-track bound on the pair's gamma (static score form), else inf
+    coord_slack: float
+    choice: costmodel.Choice | None = None  # the cost model's prediction, when asked
+
+
+def _plan(sc: _Scene, gamma: float, w_logdet: float, n_projections, orientation) -> _Plan:
+    lam_r = lambda_max_bound(sc.rcov)
+    reach = ReachBound.from_covs(sc.tcov, sc.tq, sc.dim, sc.moving)
+    spd = speed(np.hstack([sc.tpos, sc.tvel]), sc.dim) if sc.moving else np.zeros(len(sc.tpos))
+    gamma_r = gamma - w_logdet * log_det(sc.rcov) if w_logdet else np.full(len(lam_r), gamma)
+    if w_logdet and not sc.moving:
+        # det(P + R) >= det P as well, so the track side bounds the pair's gamma too.
+        gamma_t = gamma - log_det(np.ascontiguousarray(sc.tcov))
+    else:
+        gamma_t = np.full(len(spd), np.inf)
+    scale = max(float(np.abs(sc.tpos).max()), float(np.abs(sc.rpos).max()), 1.0)
+    if sc.moving:
+        t_lo, t_hi = float(sc.rtime.min()), float(sc.rtime.max())
+        scale += float(spd.max()) * (t_hi - t_lo + np.abs(sc.ttime - t_lo).max())
+    coord_slack = 64.0 * np.finfo(float).eps * scale
+    if not sc.moving:
+        return _Plan(1, 0.0, 0.0, np.zeros(len(lam_r), np.int64), orientation != "tracks",
+                     reach, spd, lam_r, gamma_r, gamma_t, coord_slack)
+    tau = t_hi - t_lo
+    choice = None
+    if n_projections == "auto" or orientation == "auto":
+        choice = costmodel.choose(sc, reach, spd, lam_r, float(np.max(gamma_r)), tau)
+        m = choice.m if n_projections == "auto" else int(n_projections)
+        on_reports = choice.on_reports if orientation == "auto" else orientation == "reports"
+    else:
+        m, on_reports = int(n_projections), orientation == "reports"
+    m = min(m, max(1, len(sc.rtime)))
+    width = tau / (2 * m)
+    bins = np.minimum(((sc.rtime - t_lo) / (2 * width)).astype(np.int64), m - 1) if tau > 0 \
+        else np.zeros(len(sc.rtime), np.int64)
+    return _Plan(m, t_lo, width, bins, on_reports, reach, spd, lam_r, gamma_r, gamma_t,
+                 coord_slack, choice)
+
+
+def _bucket_ids(key: np.ndarray, buckets) -> tuple[np.ndarray, int]:
+    """Buckets of equal width in log(key) (a radius); one when the spread is small ("auto")."""
+    if key.size == 0:
+        return np.zeros(0, np.int64), 1
+    lo, med, hi = float(key.min()), float(np.median(key)), float(key.max())
+    if buckets == "auto":
+        k = 1 if hi <= 4.0 * med or lo <= 0.0 else min(_MAX_BUCKETS, int(np.log2(hi / lo)) + 1)
+    else:
+        k = int(buckets)
+    if k == 1 or lo <= 0.0 or hi <= lo * (1.0 + 1e-9):
+        return np.zeros(key.size, np.int64), 1
+    ids = np.floor(np.log(key / lo) / np.log(hi / lo) * k).astype(np.int64)
+    return np.minimum(ids, k - 1), k
+
+
+def _slack(r: np.ndarray, coord_slack: float) -> np.ndarray:
+    return r * (1.0 + RADIUS_SLACK) + coord_slack
+
+
+def _gate_bin(sc: _Scene, plan: _Plan, k: int, reports: np.ndarray, gamma: float,
+              w_logdet: float, buckets):
+    """Exact pairs between every track and the reports of time bin k."""
+    tracks = np.arange(sc.tpos.shape[0])
+    t_mid = plan.t_lo + (2 * k + 1) * plan.width
+    w = plan.width * (1.0 + RADIUS_SLACK)
+    if sc.moving:
+        dt_max = max_abs_dt(sc.ttime, t_mid - w, t_mid + w)
+        sig = plan.reach.sigma(dt_max)
+        tpos_k = sc.tpos + (t_mid - sc.ttime)[:, None] * sc.tvel
+    else:
+        sig, tpos_k = plan.reach.sigma(0.0), sc.tpos
+    lam_r = plan.lam_r[reports]
+    g_r = plan.gamma_r[reports]
+    if plan.on_reports:
+        bid, nb = _bucket_ids(np.sqrt(lam_r), buckets)
+        lam_b = _bucket_max(lam_r, bid, nb)
+        g_b = _bucket_max(g_r, bid, nb)
+        g = np.minimum(g_b[None, :], plan.gamma_t[:, None])
+        rad = np.sqrt(np.maximum(g, 0.0) * (sig[:, None] ** 2 + lam_b[None, :]))
+        rad = _slack(rad + w * plan.speed[:, None], plan.coord_slack)
+        rad[(g < 0.0) | ~np.isfinite(rad)] = -1.0
+        cell = _bucket_cell(rad)
+        grid = build_grid(sc.rpos[reports], reports, bid, nb, cell)
+        qpos = tpos_k
+    else:
+        reach = sig + w * plan.speed
+        bid, nb = _bucket_ids(reach, buckets)
+        sig_b = _bucket_max(sig, bid, nb)
+        spd_b = _bucket_max(plan.speed, bid, nb)
+        g_t = _bucket_max(plan.gamma_t, bid, nb)  # loosest track-side bound per bucket
+        g = np.minimum(g_r[:, None], g_t[None, :])
+        delta = np.abs(sc.rtime[reports] - t_mid) if sc.moving else np.zeros(reports.size)
+        rad = np.sqrt(np.maximum(g, 0.0) * (sig_b[None, :] ** 2 + lam_r[:, None]))
+        rad = _slack(rad + delta[:, None] * spd_b[None, :], plan.coord_slack)
+        rad[(g < 0.0) | ~np.isfinite(rad)] = -1.0
+        cell = _bucket_cell(rad)
+        grid = build_grid(tpos_k, tracks, bid, nb, cell)
+        qpos = sc.rpos[reports]
+    if plan.on_reports:
+        rows = grid.members
+        t_loc, r_loc, d2 = query_grid(
+            np.ascontiguousarray(qpos), np.ascontiguousarray(rad), True, *_grid_args(grid),
+            sc.tpos, sc.tvel, sc.tcov, sc.ttime, sc.tq, take_rows(sc.rpos, rows),
+            take_rows(sc.rcov, rows), sc.rtime[rows], sc.moving, gamma, w_logdet)
+        return t_loc, rows[r_loc], d2
+    rows = grid.members
+    t_loc, r_loc, d2 = query_grid(
+        np.ascontiguousarray(qpos), np.ascontiguousarray(rad), False, *_grid_args(grid),
+        take_rows(sc.tpos, rows), take_rows(sc.tvel, rows), take_rows(sc.tcov, rows),
+        sc.ttime[rows], sc.tq[rows], take_rows(sc.rpos, reports), take_rows(sc.rcov, reports),
+        sc.rtime[reports], sc.moving, gamma, w_logdet)
+    return rows[t_loc], reports[r_loc], d2
+
+
+def _grid_args(grid):
+    return (grid.origin, grid.cell, grid.dims, grid.seg, grid.keys, grid.dense, grid.table_seg,
+            grid.table)
+
+
+def _bucket_max(x: np.ndarray, bid: np.ndarray, nb: int) -> np.ndarray:
+    """Max of x per bucket; 0 for empty buckets (the grid skips those)."""
+    if nb == 1:
+        return np.array([float(x.max())]) if x.size else np.zeros(1)
+    out = np.full(nb, -np.inf)
+    np.maximum.at(out, bid, x)
+    out[np.isneginf(out)] = 0.0
+    return out
+
+
+def _bucket_cell(rad: np.ndarray) -> np.ndarray:
+    """Cell edge per bucket: the median query radius (cells visited vs candidates scanned),
+    from an evenly spaced sample of the queries."""
+    cells = np.empty(rad.shape[1])
+    step = max(1, rad.shape[0] // 4096)
+    for b in range(rad.shape[1]):
+        r = rad[::step, b][rad[::step, b] > 0.0]
+        cells[b] = float(np.median(r)) if r.size else 1.0
+    return cells

@@ -1,0 +1,311 @@
+"""Uniform-grid spatial hash (the coarse gate) fused with the exact per-pair test.
+
+Points (one set, projected to a common time) are bucketed by their own radius contribution; each
+bucket gets a grid of cubic cells (metres), sorted by linear cell key. Each query (the other set)
+visits every cell its own radius can reach in every bucket, and runs the exact test on the points
+found there. Work is O(n log n) to build plus O(cells visited + candidates) per query, parallel
+over queries; nothing of size N_T x N_R is ever formed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+from numba import njit, prange
+
+from tracker.gating.exact import sym_d2_logdet
+from tracker.gating.reach import projected_cov_entry
+
+# Cells per axis are capped so that linear keys fit in int64 even in 3-D.
+_MAX_AXIS_CELLS = 1 << 20
+# A dense cell->start table is used while it has at most this many cells per point.
+_DENSE_CELLS_PER_POINT = 8
+# Queries per thread below which a parallel launch costs more than it saves (on a loaded
+# machine a parallel region can wait tens of milliseconds for a descheduled worker).
+_QUERIES_PER_THREAD = 50_000
+
+
+@dataclass(frozen=True)
+class Grid:
+    """Bucketed grids over a point set (metres); bucket b owns slices [seg[b], seg[b+1])."""
+
+    origin: np.ndarray     # (K, d) lower corner per bucket
+    cell: np.ndarray       # (K,) cell edge per bucket
+    dims: np.ndarray       # (K, d) int64 cells per axis
+    seg: np.ndarray        # (K + 1,) offsets into keys / members
+    keys: np.ndarray       # (n,) sorted linear cell keys, per bucket
+    members: np.ndarray    # (n,) global index of each sorted point
+    dense: np.ndarray      # (K,) bool: bucket has a dense start table
+    table_seg: np.ndarray  # (K + 1,) offsets into table
+    table: np.ndarray      # concatenated cell-start tables (local offsets)
+
+
+def build_grid(pos: np.ndarray, members: np.ndarray, bucket: np.ndarray, n_buckets: int,
+               cell: np.ndarray) -> Grid:
+    """Grid over points ``pos`` (n, d) with global ids ``members``, bucket id per point and a
+    preferred cell edge per bucket (enlarged when a dense table would need too many cells)."""
+    dim = pos.shape[1]
+    if n_buckets == 1:
+        order, seg = np.arange(pos.shape[0]), np.array([0, pos.shape[0]], dtype=np.int64)
+    else:
+        order, seg = counting_order(bucket, n_buckets)
+    origin = np.zeros((n_buckets, dim))
+    cells = np.ones(n_buckets)
+    dims = np.ones((n_buckets, dim), dtype=np.int64)
+    dense = np.zeros(n_buckets, dtype=np.bool_)
+    keys_all = np.empty(pos.shape[0], dtype=np.int64)
+    members_all = np.empty(pos.shape[0], dtype=np.int64)
+    tables, table_seg = [], [0]
+    for b in range(n_buckets):
+        idx = order[seg[b]:seg[b + 1]]
+        n = idx.size
+        if n == 0:
+            tables.append(np.zeros(0, dtype=np.int64))
+            table_seg.append(table_seg[-1])
+            continue
+        p = pos[idx]
+        lo, hi = bounding_box(p)
+        extent = hi - lo
+        h = max(float(cell[b]), float(extent.max()) / _MAX_AXIS_CELLS, 1e-300)
+        ncell = np.floor(extent / h).astype(np.int64) + 1
+        budget = _DENSE_CELLS_PER_POINT * n + 64
+        if np.prod(ncell.astype(float)) > budget:
+            # A coarser grid with an O(1) start table beats binary search unless it is much coarser.
+            h_dense = h
+            while np.prod(np.floor(extent / h_dense) + 1) > budget:
+                h_dense *= 1.25
+            if h_dense <= 2.0 * h:
+                h = h_dense
+                ncell = np.floor(extent / h).astype(np.int64) + 1
+        origin[b], cells[b], dims[b] = lo, h, ncell
+        keys = _cell_keys(p, lo, h, ncell)
+        ntot = int(np.prod(ncell))
+        dense[b] = ntot <= budget
+        if dense[b]:
+            o, start = counting_order(keys, ntot)
+            tables.append(start)
+        else:
+            o = np.argsort(keys, kind="stable")
+            tables.append(np.zeros(0, dtype=np.int64))
+        keys_all[seg[b]:seg[b + 1]] = keys[o]
+        members_all[seg[b]:seg[b + 1]] = members[idx[o]]
+        table_seg.append(table_seg[-1] + tables[-1].size)
+    return Grid(origin, cells, dims, seg, keys_all, members_all, dense,
+                np.asarray(table_seg, dtype=np.int64),
+                tables[0] if len(tables) == 1 else np.concatenate(tables))
+
+
+def take_rows(a: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """a[rows] for C-contiguous arrays of any rank (a flat gather; numpy's fancy indexing of
+    3-D arrays is several times slower)."""
+    flat = np.ascontiguousarray(a).reshape(a.shape[0], int(np.prod(a.shape[1:])))
+    return _take_rows(flat, rows).reshape((rows.shape[0],) + a.shape[1:])
+
+
+@njit(cache=True)
+def _take_rows(a, rows):
+    out = np.empty((rows.shape[0], a.shape[1]), a.dtype)
+    for i in range(rows.shape[0]):
+        out[i] = a[rows[i]]
+    return out
+
+
+@njit(cache=True)
+def bounding_box(pos):
+    """Per-axis minimum and maximum of points (n, d), n > 0 (numpy's axis-0 reductions over
+    narrow arrays are several times slower)."""
+    lo = pos[0].copy()
+    hi = pos[0].copy()
+    for i in range(1, pos.shape[0]):
+        for a in range(pos.shape[1]):
+            lo[a] = min(lo[a], pos[i, a])
+            hi[a] = max(hi[a], pos[i, a])
+    return lo, hi
+
+
+@njit(cache=True)
+def _cell_keys(p, lo, h, ncell):
+    n, dim = p.shape
+    keys = np.empty(n, dtype=np.int64)
+    for i in prange(n):
+        k = 0
+        for a in range(dim - 1, -1, -1):
+            c = int(np.floor((p[i, a] - lo[a]) / h))
+            c = min(max(c, 0), ncell[a] - 1)
+            k = k * ncell[a] + c
+        keys[i] = k
+    return keys
+
+
+@njit(cache=True, inline="always")
+def _lower_bound(keys, lo, hi, key):
+    while lo < hi:
+        mid = (lo + hi) >> 1
+        if keys[mid] < key:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
+
+
+@njit(cache=True, inline="always")
+def _axis_range(x, r, h, n):
+    """Cells [lo, hi] of an axis with n cells of edge h that [x - r, x + r] touches (empty:
+    lo > hi)."""
+    lo = np.floor((x - r) / h)
+    hi = np.floor((x + r) / h)
+    if hi < 0.0 or lo > n - 1:
+        return 1, 0
+    return int(max(lo, 0.0)), int(min(hi, n - 1.0))
+
+
+@njit(cache=True, inline="always")
+def _pair_test(t, r, tpos, tvel, tcov, ttime, tq, rpos, rcov, rtime, moving, gamma, w_logdet):
+    """Exact gate of track t with report r at the report's own time: (d^2, passed)."""
+    dim = rpos.shape[1]
+    dt = rtime[r] - ttime[t] if moving else 0.0
+    q = tq[t]
+    v00 = projected_cov_entry(tcov, t, 0, 0, dt, q, dim, moving) + rcov[r, 0, 0]
+    v01 = projected_cov_entry(tcov, t, 0, 1, dt, q, dim, moving) + rcov[r, 0, 1]
+    v11 = projected_cov_entry(tcov, t, 1, 1, dt, q, dim, moving) + rcov[r, 1, 1]
+    dx = rpos[r, 0] - tpos[t, 0] - dt * tvel[t, 0]
+    dy = rpos[r, 1] - tpos[t, 1] - dt * tvel[t, 1]
+    v02 = v12 = v22 = dz = 0.0
+    if dim == 3:
+        v02 = projected_cov_entry(tcov, t, 0, 2, dt, q, dim, moving) + rcov[r, 0, 2]
+        v12 = projected_cov_entry(tcov, t, 1, 2, dt, q, dim, moving) + rcov[r, 1, 2]
+        v22 = projected_cov_entry(tcov, t, 2, 2, dt, q, dim, moving) + rcov[r, 2, 2]
+        dz = rpos[r, 2] - tpos[t, 2] - dt * tvel[t, 2]
+    d2, ld = sym_d2_logdet(v00, v01, v02, v11, v12, v22, dx, dy, dz, dim)
+    return d2, d2 <= gamma - w_logdet * ld
+
+
+def query_grid(qpos, *args):
+    """:func:`query_grid_kernel` on as many threads as the number of queries warrants."""
+    before = numba.get_num_threads()
+    numba.set_num_threads(max(1, min(before, qpos.shape[0] // _QUERIES_PER_THREAD)))
+    try:
+        return query_grid_kernel(qpos, *args)
+    finally:
+        numba.set_num_threads(before)
+
+
+@njit(cache=True, parallel=True)
+def query_grid_kernel(qpos, qrad, query_is_track, origin, cell, dims, seg, keys, dense, table_seg, table,
+               tpos, tvel, tcov, ttime, tq, rpos, rcov, rtime, moving, gamma, w_logdet):
+    """Exact-gated pairs between queries (rows of qpos, radius per bucket qrad (nq, K); a
+    negative radius skips the bucket) and the grid's points.
+
+    The query set's arrays (tracks when ``query_is_track``) are indexed by query row, the
+    point set's arrays by sorted grid position, so candidates in a cell are contiguous in
+    memory. Returns local (track row, report row, d^2), grouped by query.
+    """
+    nq = qpos.shape[0]
+    counts = np.zeros(nq + 1, dtype=np.int64)
+    no_i, no_f = np.empty(0, np.int64), np.empty(0)
+    for i in prange(nq):
+        counts[i + 1] = _visit(i, qpos, qrad, query_is_track, origin, cell, dims, seg, keys,
+                               dense, table_seg, table, tpos, tvel, tcov, ttime, tq, rpos, rcov,
+                               rtime, moving, gamma, w_logdet, no_i, no_i, no_f, 0, False)
+    offs = np.cumsum(counts)
+    out_t = np.empty(offs[-1], dtype=np.int64)
+    out_r = np.empty(offs[-1], dtype=np.int64)
+    out_d2 = np.empty(offs[-1])
+    for i in prange(nq):
+        _visit(i, qpos, qrad, query_is_track, origin, cell, dims, seg, keys, dense, table_seg,
+               table, tpos, tvel, tcov, ttime, tq, rpos, rcov, rtime, moving, gamma, w_logdet,
+               out_t, out_r, out_d2, offs[i], True)
+    return out_t, out_r, out_d2
+
+
+@njit(cache=True, inline="always")
+def _visit(i, qpos, qrad, query_is_track, origin, cell, dims, seg, keys, dense, table_seg, table,
+           tpos, tvel, tcov, ttime, tq, rpos, rcov, rtime, moving, gamma, w_logdet, out_t, out_r,
+           out_d2, at, write):
+    dim = qpos.shape[1]
+    n_buckets = cell.shape[0]
+    found = 0
+    i = np.int64(i)  # parfor indices are unsigned; keep (t, r) integer when unified with m
+    for b in range(n_buckets):
+        r = qrad[i, b]
+        if r < 0.0 or seg[b + 1] == seg[b]:
+            continue
+        h = cell[b]
+        x_lo, x_hi = _axis_range(qpos[i, 0] - origin[b, 0], r, h, dims[b, 0])
+        y_lo, y_hi = _axis_range(qpos[i, 1] - origin[b, 1], r, h, dims[b, 1])
+        z_lo, z_hi = 0, 0
+        if dim == 3:
+            z_lo, z_hi = _axis_range(qpos[i, 2] - origin[b, 2], r, h, dims[b, 2])
+        for cz in range(z_lo, z_hi + 1):
+            for cy in range(y_lo, y_hi + 1):
+                if x_lo > x_hi:
+                    break
+                row = (cz * dims[b, 1] + cy) * dims[b, 0]
+                k_lo, k_hi = row + x_lo, row + x_hi
+                if dense[b]:
+                    s = seg[b] + table[table_seg[b] + k_lo]
+                    e = seg[b] + table[table_seg[b] + k_hi + 1]
+                else:
+                    s = _lower_bound(keys, seg[b], seg[b + 1], k_lo)
+                    e = _lower_bound(keys, s, seg[b + 1], k_hi + 1)
+                for m in range(np.int64(s), np.int64(e)):
+                    t, rep = (i, m) if query_is_track else (m, i)
+                    d2, ok = _pair_test(t, rep, tpos, tvel, tcov, ttime, tq, rpos, rcov, rtime,
+                                        moving, gamma, w_logdet)
+                    if ok:
+                        if write:
+                            out_t[at + found] = t
+                            out_r[at + found] = rep
+                            out_d2[at + found] = d2
+                        found += 1
+    return found
+
+
+@njit(cache=True)
+def counting_order(keys, n_keys):
+    """Stable permutation sorting integer keys in [0, n_keys) (O(n + n_keys)), and the start
+    offset of each key (n_keys + 1,)."""
+    start = np.zeros(n_keys + 1, dtype=np.int64)
+    for k in keys:
+        start[k + 1] += 1
+    for k in range(n_keys):
+        start[k + 1] += start[k]
+    fill = start[:-1].copy()
+    order = np.empty(keys.shape[0], dtype=np.int64)
+    for i in range(keys.shape[0]):
+        order[fill[keys[i]]] = i
+        fill[keys[i]] += 1
+    return order, start
+
+
+def spatial_order(pos: np.ndarray) -> np.ndarray:
+    """Permutation putting points (n, d) in row-major order of a grid with about n cells, so
+    that neighbours sit close in memory (O(n))."""
+    n = pos.shape[0]
+    if n == 0:
+        return np.zeros(0, np.int64)
+    lo, hi = bounding_box(pos)
+    extent = hi - lo
+    if not extent.max() > 0.0:
+        return np.arange(n)
+    # at most n^(1/d) cells along the longest axis, so at most ~n cells in all
+    h = float(extent.max()) / np.ceil(n ** (1.0 / pos.shape[1]))
+    ncell = np.floor(extent / h).astype(np.int64) + 1
+    return counting_order(_cell_keys(pos, lo, h, ncell), int(np.prod(ncell)))[0]
+
+
+@njit(cache=True)
+def sort_pairs(t, r, n_t):
+    """Permutation sorting pairs by (t, r): counting sort on t, insertion sort within a t."""
+    order, start = counting_order(t, n_t)
+    for k in prange(n_t):
+        for a in range(start[k] + 1, start[k + 1]):
+            x = order[a]
+            b = a - 1
+            while b >= start[k] and r[order[b]] > r[x]:
+                order[b + 1] = order[b]
+                b -= 1
+            order[b + 1] = x
+    return order

@@ -1,0 +1,393 @@
+"""The paper's experiment (paper 1, section 6): UU, UT and TT over a τ grid on seeded data sets.
+
+``run_dataset(prior_path, seed, config)`` is a pure function (one data set in, a list of flat
+records out) so it maps onto any executor: a local process pool by default (``run_experiment``),
+or Dask. Per data set it simulates the scenario, runs the association for every variant and τ,
+and scores every result against the perfect-association estimate with one shared Gram matrix:
+mixture components are keyed by the set of reports they fuse, and a component with the same
+report set is the same density in every τ, in UT and TT, and in the perfect estimate — so each
+distinct pair integral is computed once per data set, however many τ values and variants use it.
+
+Outputs (``write_outputs``): ``results.parquet`` (or CSV), ``summary.json`` (mean/std per variant
+and τ, best τ, Table 1 in normal and t forms next to the paper's), and PNG figures like 11–15.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import os
+from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import asdict, dataclass, field
+from functools import lru_cache, partial
+from pathlib import Path
+
+import numba
+import numpy as np
+import pandas as pd
+from tqdm.auto import tqdm
+
+from common.atomic import atomic_paths
+from pipeline.prior.terrain import TerrainPrior
+from tracker.association.greedy import associate, perfect_estimate
+from tracker.integrate.terraces import METHODS as INTEGRATORS
+from tracker.integrate.terraces import integrate
+from tracker.models.sfunc import ExpS, PoissonS, SModel
+from tracker.study.compare import best_tau_index, comparison_table, prob_better
+from tracker.study.metrics import ScoreGram, gospa, mixture_weights, ospa, posterior_means, purity
+from tracker.study.plots import PAPER_TABLE, table_markdown, write_figures
+from tracker.study.simulate import AirborneSensor, simulate
+
+VARIANTS = ("UU", "UT", "TT")
+
+
+def parse_taus(spec: str) -> tuple[float, ...]:
+    """``"start:stop:step"`` (stop included, like the paper's -3..3 by .25 = 25 values) or a comma list."""
+    try:
+        if ":" in spec:
+            start, stop, step = (float(s) for s in spec.split(":"))
+            if not step > 0 or stop < start:
+                raise ValueError
+            n = int(np.floor((stop - start) / step + 1e-9)) + 1
+            return tuple(float(round(start + i * step, 12)) for i in range(n))
+        return tuple(float(s) for s in spec.split(","))
+    except ValueError:
+        raise ValueError(f"--tau {spec!r}: expected start:stop:step with step > 0 and stop >= start, or a comma list") from None
+
+
+@dataclass(frozen=True)
+class ExperimentConfig:
+    """Everything that defines the experiment besides the prior (seeds are base_seed + data set index)."""
+
+    n_datasets: int = 28
+    n_reports: int = 100
+    taus: tuple[float, ...] = parse_taus("-3:3:0.25")
+    variants: tuple[str, ...] = VARIANTS
+    n_targets: int = 200
+    region_m: float | None = 14000.0
+    keep_fraction: float = 0.5
+    base_seed: int = 0
+    gospa_c_m: float = 500.0
+    sensor: AirborneSensor = field(default_factory=AirborneSensor)
+    poisson_mu: float | None = None
+    """Also run each variant with the exact eq. 16 S(n, k) under N_T ~ Poisson(mu) (no τ)."""
+    integrator: str = "scalespace"
+    """``method`` of :func:`tracker.integrate.terraces.integrate`: "scalespace" or "terraces"."""
+
+    def __post_init__(self) -> None:
+        bad = [v for v in self.variants if v not in VARIANTS]
+        if bad:
+            raise ValueError(f"variants {bad} unknown; choose from {VARIANTS}")
+        if self.n_datasets < 2:
+            raise ValueError(f"n_datasets must be >= 2 (Appendix B needs a sample variance), got {self.n_datasets}")
+        if not self.taus:
+            raise ValueError("taus must not be empty")
+        if self.poisson_mu is not None:
+            PoissonS(self.poisson_mu)  # validates mu
+        if self.integrator not in INTEGRATORS:
+            raise ValueError(f"integrator {self.integrator!r} unknown; choose from {INTEGRATORS}")
+
+    @property
+    def seeds(self) -> list[int]:
+        return [self.base_seed + i for i in range(self.n_datasets)]
+
+
+def _load_prior(prior_path: str) -> TerrainPrior:
+    """The prior, read once per process and file version (a rebuilt file at the same path is re-read)."""
+    try:
+        st = os.stat(prior_path)
+    except FileNotFoundError:
+        return TerrainPrior.read(prior_path)  # raises the PriorError naming the missing file
+    return _read_prior(prior_path, st.st_ino, st.st_mtime_ns, st.st_size)
+
+
+@lru_cache(maxsize=4)
+def _read_prior(prior_path: str, inode: int, mtime_ns: int, size: int) -> TerrainPrior:
+    # The summed-area tables are memory-mapped; inode, mtime and size only key the cache (an atomic
+    # rewrite replaces the inode).
+    return TerrainPrior.read(prior_path)
+
+
+class CachedIntegrator:
+    """Memoises ``integrate(prior, means, covs, squared)`` per exact (mean, covariance) bytes for one prior.
+
+    Across τ values (and between UT, TT and the scoring of one data set) the tracker integrates the
+    same Gaussians again until its decisions diverge: ∫G(z, V) r of every report, and the candidate
+    products of identical hypothesis states. Only misses reach the wrapped integrator; ``hits`` and
+    ``misses`` count Gaussians.
+    """
+
+    def __init__(self, prior: TerrainPrior, integrator: Callable[..., np.ndarray] = integrate) -> None:
+        self.prior = prior
+        self.integrator = integrator
+        self.table: dict[bytes, float] = {}  # ∫G r, keyed by the bytes of (mean, covariance)
+        self.table2: dict[bytes, float] = {}  # ∫G r²
+        self.hits = 0
+        self.misses = 0
+
+    def __call__(self, prior: TerrainPrior, means: np.ndarray, covs: np.ndarray, squared: bool = False) -> np.ndarray:
+        if prior is not self.prior:
+            raise ValueError("CachedIntegrator: called with a different prior than it caches")
+        means = np.asarray(means, dtype=np.float64)
+        covs = np.asarray(covs, dtype=np.float64)
+        n = means.shape[0]
+        table = self.table2 if squared else self.table
+        blob = np.concatenate([means.reshape(n, -1), covs.reshape(n, -1)], axis=1).tobytes()
+        width = len(blob) // n if n else 0
+        keys = [blob[i * width:(i + 1) * width] for i in range(n)]
+        values = [table.get(k) for k in keys]
+        miss = [i for i, v in enumerate(values) if v is None]
+        self.hits += n - len(miss)
+        if miss:
+            self.misses += len(miss)
+            fresh = np.asarray(self.integrator(prior, means[miss], covs[miss], squared=squared), dtype=np.float64)
+            for i, v in zip(miss, fresh.tolist(), strict=True):
+                values[i] = table[keys[i]] = v
+        return np.array(values, dtype=np.float64)
+
+
+class _Components:
+    """Distinct mixture components of one data set, keyed by (fused report set, terrain flag)."""
+
+    def __init__(self) -> None:
+        self.index: dict[tuple[bytes, bool], int] = {}
+        self.means: list[np.ndarray] = []
+        self.covs: list[np.ndarray] = []
+        self.terrain: list[bool] = []
+
+    def register(self, assignment: np.ndarray, means: np.ndarray, covs: np.ndarray, terrain: bool) -> np.ndarray:
+        """Component indices of hypotheses 0..len(means)-1, whose reports are ``assignment == q``."""
+        order = np.argsort(assignment, kind="stable")
+        bounds = (4 * np.searchsorted(assignment[order], np.arange(len(means) + 1))).tolist()
+        blob = order.astype(np.int32).tobytes()  # report indices grouped by hypothesis, 4 bytes each
+        out = np.empty(len(means), dtype=np.intp)
+        for q in range(len(means)):
+            key = (blob[bounds[q]:bounds[q + 1]], terrain)
+            idx = self.index.get(key)
+            if idx is None:
+                idx = self.index[key] = len(self.means)
+                self.means.append(means[q])
+                self.covs.append(covs[q])
+                self.terrain.append(terrain)
+            out[q] = idx
+        return out
+
+    def gram(self, prior: TerrainPrior, integrator: Callable[..., np.ndarray], mixtures: Iterable[np.ndarray]) -> ScoreGram:
+        """The Gram matrix over the pairs that occur together in one of ``mixtures`` (component indices)."""
+        n = len(self.means)
+        needed = np.zeros((n, n), dtype=bool)
+        for members in mixtures:
+            mask = np.zeros(n, dtype=bool)
+            mask[members] = True
+            needed |= mask[:, None] & mask[None, :]
+        return ScoreGram(prior, np.array(self.means), np.array(self.covs), np.array(self.terrain),
+                         integrator=integrator, needed=needed)
+
+
+def run_dataset(prior_path: str | os.PathLike, seed: int, config: ExperimentConfig) -> list[dict]:
+    """Simulate data set ``seed`` and score every variant at every τ; one record per (variant, τ).
+
+    Record fields: dataset seed, variant, s_model ("exp": S = e^{-nτ}; "poisson": eq. 16 with
+    ``config.poisson_mu``, tau NaN), tau, score (per m; the paper plots it ×10^4.5),
+    score_error_bound (bound on |Score²| error from skipped negligible pairs, per m²), nd_hat, nd,
+    nd_abs_error, gospa_m and ospa_m (metres, cut-off ``gospa_c_m``; points are the estimate's means:
+    the Gaussians' for UU, the terrain posteriors' for UT and TT),
+    purity, skipped (reports off the prior, left unassigned), n_targets (kept targets in the window).
+    """
+    prior = _load_prior(str(prior_path))
+    sc = simulate(prior, seed, config.n_targets, config.n_reports, config.region_m, config.keep_fraction, config.sensor)
+    reports = sc.reports
+    integrator = CachedIntegrator(prior, partial(integrate, method=config.integrator))
+    comps = _Components()
+    perfect = perfect_estimate(prior, reports, terrain=True, integrator=integrator)
+    ref = comps.register(np.searchsorted(perfect.labels, reports.truth), perfect.means, perfect.covs, True)
+    detected = sc.targets[perfect.labels]
+    nd = len(ref)
+
+    # (label, τ, S model): the paper's e^{-nτ} per τ, and optionally eq. 16 under Poisson(μ).
+    settings = [("exp", float(tau), ExpS(float(tau))) for tau in config.taus]
+    if config.poisson_mu is not None:
+        settings.append(("poisson", float("nan"), PoissonS(config.poisson_mu)))
+    evaluations = []
+    runs: dict[tuple[str, SModel], object] = {}
+    for variant in config.variants:
+        # UT associates exactly as UU (paper sec. 6); only its reported estimate differs.
+        assoc_variant = "UU" if variant == "UT" else variant
+        for label, tau, s_model in settings:
+            res = runs.get((assoc_variant, s_model))
+            if res is None:
+                res = runs[(assoc_variant, s_model)] = associate(
+                    prior, reports, assoc_variant, s_model=s_model, off_prior="skip", integrator=integrator
+                )
+            est = res.estimate
+            members = comps.register(res.assignments, est.means, est.covs, variant != "UU")
+            evaluations.append((variant, label, tau, res, members))
+
+    gram = comps.gram(prior, integrator, (np.concatenate([members, ref]) for *_, members in evaluations))
+    n = len(comps.means)
+    w_ref = mixture_weights(n, ref, -1.0)
+    # Point estimates for GOSPA/OSPA: each component's mean (the terrain posterior's for UT/TT).
+    points = np.array(comps.means)
+    terrain = np.array(comps.terrain)
+    points[terrain] = posterior_means(prior, points[terrain], np.array(comps.covs)[terrain], integrator=integrator)
+    records = []
+    # Point metrics once per distinct (association, estimate kind): τ runs often agree.
+    assoc_metrics: dict[tuple[bytes, bool], dict] = {}
+    for variant, label, tau, res, members in evaluations:
+        s, err = gram.score(mixture_weights(n, members) + w_ref)
+        key = (res.assignments.tobytes(), variant != "UU")
+        if key not in assoc_metrics:
+            on = res.assignments >= 0
+            assoc_metrics[key] = {
+                "gospa_m": gospa(points[members], detected, config.gospa_c_m)["gospa"],
+                "ospa_m": ospa(points[members], detected, config.gospa_c_m),
+                "purity": purity(res.assignments[on], reports.truth[on]),
+                "skipped": int((~on).sum()),
+            }
+        records.append({
+            "seed": int(seed), "variant": variant, "s_model": label, "tau": tau, "score": s, "score_error_bound": err,
+            "nd_hat": int(res.n_detected), "nd": nd, "nd_abs_error": abs(int(res.n_detected) - nd),
+            **assoc_metrics[key], "n_targets": int(len(sc.targets)),
+        })
+    return records
+
+
+def _worker_init() -> None:
+    # One numba thread per worker process: the pool already uses the cores.
+    numba.set_num_threads(1)
+
+
+def _pool_context() -> multiprocessing.context.BaseContext:
+    """Fork while this process has no numba (OpenMP) thread pool yet: safe and instant. Once it has
+    one, forking is unsafe, so workers come from a fork server with this module preloaded."""
+    try:
+        numba.threading_layer()
+    except ValueError:
+        return multiprocessing.get_context("fork")
+    ctx = multiprocessing.get_context("forkserver")
+    ctx.set_forkserver_preload([__name__])
+    return ctx
+
+
+def map_local(fn: Callable[[int], list[dict]], seeds: Sequence[int], workers: int | None) -> Iterable[list[dict]]:
+    """Map ``fn`` over seeds in a local process pool (``workers`` processes, default all cores;
+    1 runs inline), results in seed order."""
+    workers = workers or os.cpu_count() or 1
+    if workers == 1 or len(seeds) == 1:
+        yield from map(fn, seeds)
+        return
+    with ProcessPoolExecutor(max_workers=min(workers, len(seeds)), mp_context=_pool_context(), initializer=_worker_init) as pool:
+        yield from pool.map(fn, seeds)
+
+
+def run_experiment(
+    prior_path: str | os.PathLike, config: ExperimentConfig, workers: int | None = None, progress: bool = True
+) -> pd.DataFrame:
+    """All data sets, variants and τ values as one long table (rows sorted by seed, variant, τ)."""
+    fn = partial(run_dataset, str(prior_path), config=config)
+    rows: list[dict] = []
+    bar = tqdm(total=config.n_datasets, desc="data sets", unit="set", disable=not progress)
+    for records in map_local(fn, config.seeds, workers):
+        rows.extend(records)
+        bar.update(1)
+    bar.close()
+    return pd.DataFrame(rows).sort_values(["seed", "variant", "tau"], kind="stable").reset_index(drop=True)
+
+
+def score_matrix(results: pd.DataFrame, variant: str, column: str = "score") -> np.ndarray:
+    """(data sets, τ) array of one variant's ``column``."""
+    table = results[results["variant"] == variant].pivot(index="seed", columns="tau", values=column)
+    return table.sort_index().sort_index(axis=1).to_numpy()
+
+
+def summarise(results: pd.DataFrame, config: ExperimentConfig) -> dict:
+    """Per-variant curves, best τ, and Table 1 (normal and t forms) beside the paper's values; with
+    Poisson rows, each variant's exact-S score and P(exact S better than the best τ)."""
+    poisson = results[results["s_model"] == "poisson"]
+    results = results[results["s_model"] == "exp"]
+    variants = [v for v in VARIANTS if v in set(results["variant"])]
+    taus = sorted(results["tau"].unique())
+    per_variant = {}
+    scores = {}
+    for v in variants:
+        s = score_matrix(results, v)
+        scores[v] = s
+        b = best_tau_index(s)
+        nd_err = score_matrix(results, v, "nd_abs_error")
+        per_variant[v] = {
+            "best_tau": taus[b],
+            "best_mean_score": float(s[:, b].mean()),
+            "best_mean_score_x10^4.5": float(s[:, b].mean() * 10**4.5),
+            "best_std_score": float(s[:, b].std(ddof=1)),
+            "mean_nd_abs_error_at_best_tau": float(nd_err[:, b].mean()),
+            "min_mean_nd_abs_error": float(nd_err.mean(axis=0).min()),
+            "tau_of_min_nd_abs_error": taus[int(nd_err.mean(axis=0).argmin())],
+            "mean_purity_at_best_tau": float(score_matrix(results, v, "purity")[:, b].mean()),
+            "mean_gospa_m_at_best_tau": float(score_matrix(results, v, "gospa_m")[:, b].mean()),
+            "mean_score_by_tau": s.mean(axis=0).tolist(),
+            "std_score_by_tau": s.std(axis=0, ddof=1).tolist(),
+            "mean_nd_abs_error_by_tau": nd_err.mean(axis=0).tolist(),
+        }
+        if len(poisson):
+            p = poisson[poisson["variant"] == v].sort_values("seed")
+            per_variant[v].update({
+                "poisson_mean_score_x10^4.5": float(p["score"].mean() * 10**4.5),
+                "poisson_mean_nd_abs_error": float(p["nd_abs_error"].mean()),
+                "prob_poisson_better_than_best_tau": prob_better(p["score"].to_numpy() - s[:, b], "normal"),
+            })
+    config_dict = asdict(config)
+    return {
+        "config": config_dict,
+        "taus": [float(t) for t in taus],
+        "n_datasets": int(results["seed"].nunique()),
+        "mean_targets_in_window": float(results.groupby("seed")["n_targets"].first().mean()),
+        "mean_nd": float(results.groupby("seed")["nd"].first().mean()),
+        "max_score_error_bound": float(results["score_error_bound"].max()),
+        "variants": per_variant,
+        "table_normal": comparison_table(scores, "normal", variants),
+        "table_t": comparison_table(scores, "t", variants),
+        "paper_table": PAPER_TABLE,
+    }
+
+
+def write_outputs(results: pd.DataFrame, summary: dict, out_dir: str | os.PathLike, title: str = "") -> dict[str, str]:
+    """Results table (Parquet, CSV if pyarrow is missing), summary JSON, Table 1 Markdown and figures."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {}
+    try:
+        with atomic_paths(out / "results.parquet") as (tmp,):
+            results.to_parquet(tmp, index=False)
+        paths["results"] = str(out / "results.parquet")
+    except ImportError:
+        with atomic_paths(out / "results.csv") as (tmp,):
+            results.to_csv(tmp, index=False)
+        paths["results"] = str(out / "results.csv")
+    with atomic_paths(out / "summary.json") as (tmp,):
+        tmp.write_text(json.dumps(summary, indent=1))
+    paths["summary"] = str(out / "summary.json")
+    with atomic_paths(out / "table1.md") as (tmp,):
+        tmp.write_text(
+            "Normal form (paper's value in brackets):\n\n" + table_markdown(summary["table_normal"])
+            + "\n\nt form:\n\n" + table_markdown(summary["table_t"]) + "\n"
+        )
+    paths["table"] = str(out / "table1.md")
+    paths["figures"] = [str(p) for p in write_figures(results, out, title=title)]
+    return paths
+
+
+def run_and_write(
+    prior_path: str | os.PathLike,
+    out_dir: str | os.PathLike,
+    config: ExperimentConfig,
+    workers: int | None = None,
+    progress: bool = True,
+    title: str = "",
+) -> tuple[dict, dict]:
+    """The ``terrain-track experiment`` command: run, summarise, write; returns (summary, paths)."""
+    prior_path = Path(prior_path)
+    TerrainPrior.read(prior_path)  # fail fast, naming the file, before any worker starts
+    results = run_experiment(prior_path, config, workers=workers, progress=progress)
+    summary = summarise(results, config)
+    return summary, write_outputs(results, summary, out_dir, title=title or prior_path.stem)
