@@ -7,6 +7,8 @@ Every scaled-out entry point (tiled build, tiled learning pass, experiment sweep
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 from distributed import Client
 
@@ -26,3 +28,17 @@ def get_client(address: str | None = None, threads: int | None = None) -> Client
         return Client(address, timeout="10s")
     except OSError as exc:  # distributed raises OSError (TimeoutError) for an unreachable scheduler
         raise ValueError(f"--scheduler {address}: cannot connect to a Dask scheduler there ({exc})") from exc
+
+
+@contextmanager
+def using_client(client: Client | None = None) -> Iterator[Client]:
+    """``client`` as it is, or a local :func:`get_client` for the block that is closed when the block
+    ends; the caller's client is never closed."""
+    if client is not None:
+        yield client
+        return
+    own = get_client(None)
+    try:
+        yield own
+    finally:
+        own.close()
