@@ -88,6 +88,17 @@ class Grid:
         v = (self.transform.f - np.asarray(y, dtype=np.float64)) / self.dy
         return u, v
 
+    def contains(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """True where map points (metres) fall in a cell of the grid (half-open cells, as :meth:`to_pixel`)."""
+        u, v = self.to_pixel(x, y)
+        return (u >= 0) & (u < self.width) & (v >= 0) & (v < self.height)
+
+    def cell_index(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(row, col, inside) of map points (metres): integer cell indices, 0 where a point is off the grid."""
+        u, v = self.to_pixel(x, y)
+        inside = (u >= 0) & (u < self.width) & (v >= 0) & (v < self.height)
+        return np.where(inside, v, 0).astype(np.intp), np.where(inside, u, 0).astype(np.intp), inside
+
     def cell_centres(self) -> tuple[np.ndarray, np.ndarray]:
         """Map coordinates (x, y) of cell centres as two (height, width) arrays."""
         xs = self.transform.c + (np.arange(self.width) + 0.5) * self.dx
