@@ -90,8 +90,7 @@ class Grid:
 
     def contains(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """True where map points (metres) fall in a cell of the grid (half-open cells, as :meth:`to_pixel`)."""
-        u, v = self.to_pixel(x, y)
-        return (u >= 0) & (u < self.width) & (v >= 0) & (v < self.height)
+        return self.cell_index(x, y)[2]
 
     def cell_index(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(row, col, inside) of map points (metres): integer cell indices, 0 where a point is off the grid."""
