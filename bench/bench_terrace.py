@@ -28,9 +28,8 @@ from affine import Affine
 from bench.timing import best_time
 from pipeline.gis.grid import Grid
 from pipeline.prior.terrain import TerrainPrior
-from tracker.integrate import scalespace
+from tracker.integrate import integrate, scalespace
 from tracker.integrate.reference import reference_integrate
-from tracker.integrate.terraces import integrate
 
 HERE = Path(__file__).resolve().parent
 FIGURE = HERE / "figures" / "terrace_speed.png"

@@ -68,9 +68,11 @@ from tracker.association.walk import (
     pair_geometry,
     walk,
 )
+from tracker.integrate import Integrator, integrate_checked
 from tracker.models.sfunc import ExpS, PoissonS, SModel
+from tracker.types.estimate import Estimate
 from tracker.types.hypotheses import ConstantVelocity, Hypotheses, MotionModel, Static
-from tracker.types.reports import Reports, check_gaussians
+from tracker.types.reports import Reports
 
 VARIANTS = ("UU", "UT", "TT")
 GATE_PROB = 1.0 - 1e-9
@@ -85,23 +87,7 @@ LOW_C = 256
 _RMAX_SLACK = math.log(2.0)
 _LOG_2PI = math.log(2.0 * math.pi)
 
-Integrator = Callable[..., np.ndarray]
 Gater = Callable[..., tuple]
-
-
-@dataclass(frozen=True)
-class Estimate:
-    """Reported position densities p̂_q(y) = exp(-log_c_q) G(y; means_q, covs_q) r(y) when ``terrain``,
-    else the Gaussians G(y; means_q, covs_q) alone (UU). ``means`` (N, 2) m, ``covs`` (N, 2, 2) m²,
-    ``log_c`` (N,) ln of per m², ``counts`` (N,) reports per hypothesis, ``labels`` (N,) the truth
-    label of each density for perfect association (else -1)."""
-
-    means: np.ndarray
-    covs: np.ndarray
-    log_c: np.ndarray
-    counts: np.ndarray
-    terrain: bool
-    labels: np.ndarray
 
 
 @dataclass
@@ -115,12 +101,6 @@ class AssociationResult:
     n_detected: int
     estimate: Estimate
     stats: dict = field(default_factory=dict)
-
-
-def _default_integrator() -> Integrator:
-    from tracker.integrate.terraces import integrate
-
-    return integrate
 
 
 def _default_gater() -> Gater:
@@ -209,8 +189,9 @@ class Tracker:
     :class:`~tracker.types.hypotheses.Static` or :class:`~tracker.types.hypotheses.ConstantVelocity`; ``gamma``
     the gate on d² (decisions do not depend on it, see the module doc); ``off_prior`` what to do
     with a report whose ∫G(z,V) r is 0 (off the grid or on structural zeros) in TT/UT: "raise"
-    (default; nothing is changed) or "skip" (assignment -1, not counted in k). ``gater`` and
-    ``integrator`` default to :func:`tracker.gating.gate.gate` and :func:`tracker.integrate.terraces.integrate`.
+    (default; nothing is changed) or "skip" (assignment -1, not counted in k). ``gater`` defaults to
+    :func:`tracker.gating.gate.gate`; ``integrator`` (an :class:`~tracker.integrate.Integrator`, given
+    only Gaussians built from checked reports) to :func:`tracker.integrate.integrate_checked`.
 
     Fitted state: ``hypotheses_``, ``n_detected_``, ``n_reports_`` (k), ``stats_``.
     """
@@ -246,7 +227,7 @@ class Tracker:
         self.block = int(block)
         self.off_prior = off_prior
         self.gater = _one_thread_when_small(gater or _default_gater(), 2)  # sized by the reports
-        self.integrator = _one_thread_when_small(integrator or _default_integrator(), 1)
+        self.integrator = _one_thread_when_small(integrator or integrate_checked, 1)
         xmin, ymin, xmax, ymax = prior.grid.bounds
         self.log_u = -math.log((xmax - xmin) * (ymax - ymin))
         self.log_rmax = _log_rmax(prior)
@@ -263,16 +244,13 @@ class Tracker:
     def n_detected_(self) -> int:
         return self.hypotheses_.n
 
-    # -- input checks: everything is validated before any state changes
+    # -- input checks: everything is validated before any state changes. The Gaussians and times
+    # were checked once, when the Reports batch was built; here only what the tracker adds.
 
     def _check(self, reports: Reports) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        z, V = check_gaussians(reports.means, reports.covs, "reports")
+        z, V, t = reports.means, reports.covs, reports.times
         if z.shape[1] != 2:
             raise ValueError(f"reports: positions must be 2-D (x, y) metres, got dimension {z.shape[1]}")
-        t = np.asarray(reports.times, dtype=np.float64)
-        bad = np.flatnonzero(~np.isfinite(t))
-        if bad.size:
-            raise ValueError(f"reports: non-finite times at indices {bad[:10].tolist()}")
         if isinstance(self.motion, ConstantVelocity) and t.size:
             back = np.flatnonzero(np.diff(np.concatenate([[self._last_time], t])) < 0)
             if back.size:
@@ -484,7 +462,7 @@ def perfect_estimate(
     truth = np.asarray(reports.truth)
     if truth.size and truth.min() < 0:
         raise ValueError(f"perfect_estimate: reports {np.flatnonzero(truth < 0)[:10].tolist()} have no truth label")
-    z, V = check_gaussians(reports.means, reports.covs, "reports")
+    z, V = reports.means, reports.covs
     labels, group = np.unique(truth, return_inverse=True)
     V_inv = np.linalg.inv(V)
     info = np.zeros((labels.size, z.shape[1], z.shape[1]))
@@ -496,7 +474,7 @@ def perfect_estimate(
     b = np.einsum("nij,nj->ni", B, vec)
     counts = np.bincount(group, minlength=labels.size)
     if terrain:
-        log_c = _log((integrator or _default_integrator())(prior, b, B))
+        log_c = _log((integrator or integrate_checked)(prior, b, B))
     else:
         xmin, ymin, xmax, ymax = prior.grid.bounds
         log_c = np.full(labels.size, -math.log((xmax - xmin) * (ymax - ymin)))

@@ -1,0 +1,164 @@
+"""Integrals of 2-D Gaussians against a terrain prior: ∫ G(y; a_n, A_n) r(y) dy per m², or ∫ G r² dy per m⁴.
+
+:func:`integrate` is the public entry: it validates the Gaussians (one pass of
+:func:`tracker.types.reports.check_gaussians`) and calls :func:`integrate_checked`, the path for arrays
+already checked (a :class:`~tracker.types.reports.Reports` batch, or Gaussian products of checked
+Gaussians), which the association and the metrics call many times per batch. By default both use the
+prior's Gaussian pyramid (:mod:`tracker.integrate.scalespace`, ~30 look-ups per integral) and the
+terraces (:mod:`tracker.integrate.terraces`) for the Gaussians the pyramid is not made for;
+``method="terraces"`` uses the terraces throughout. :mod:`tracker.integrate.reference` is the slow,
+independent dense reference. Anything the tracker or the metrics call to integrate is an
+:class:`Integrator`.
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import Literal, Protocol
+
+import numpy as np
+
+from pipeline.prior.terrain import TerrainPrior
+from tracker.integrate import scalespace
+from tracker.integrate.reference import covered_mass, reference_integrate
+from tracker.integrate.terraces import (
+    MASS,
+    N_STRIPS,
+    N_TERRACES,
+    SHEAR,
+    integrate_terraces,
+    near_grid,
+    pixel_gaussians,
+)
+from tracker.types.reports import check_gaussians
+
+__all__ = [
+    "METHODS",
+    "NEAR_RHO",
+    "NEAR_SPREAD",
+    "Integrator",
+    "covered_mass",
+    "integrate",
+    "integrate_checked",
+    "reference_integrate",
+]
+
+METHODS = ("scalespace", "terraces")
+"""The integrators :func:`integrate` offers (its ``method``)."""
+NEAR_RHO = 0.5
+"""Mahalanobis distance from the grid beyond which ``method="scalespace"`` leaves a Gaussian to the terraces."""
+NEAR_SPREAD = 4.0
+"""2π√det A over the grid's area beyond which ``method="scalespace"`` leaves a Gaussian to the terraces."""
+
+
+class Integrator(Protocol):
+    """What the association (:class:`tracker.association.greedy.Tracker`) and the metrics
+    (:mod:`tracker.study.metrics`) need from an integrator.
+
+    Called with ``means`` (N, 2) metres in the prior's CRS and ``covs`` (N, 2, 2) m² that are already
+    checked (finite, symmetric positive definite: see :func:`integrate_checked`); returns (N,) float64
+    ∫ G(y; a_n, A_n) r(y) dy per m², or ∫ G r² dy per m⁴ when ``squared``. Examples:
+    :func:`integrate_checked`, ``functools.partial(integrate_checked, method="terraces")``,
+    :func:`reference_integrate`, :class:`tracker.study.experiment.CachedIntegrator`.
+    """
+
+    def __call__(self, prior: TerrainPrior, means: np.ndarray, covs: np.ndarray, squared: bool = False) -> np.ndarray: ...
+
+
+def integrate(
+    prior: TerrainPrior,
+    means: np.ndarray,
+    covs: np.ndarray,
+    squared: bool = False,
+    *,
+    method: Literal["scalespace", "terraces"] = "scalespace",
+    n_terraces: int = N_TERRACES,
+    n_strips: int = N_STRIPS,
+    mass: float = MASS,
+    shear: float = SHEAR,
+    scheme: Literal["adaptive", "paper"] = "adaptive",
+) -> np.ndarray:
+    """∫ G(y; a_n, A_n) r(y) dy per m² (or ∫ G r² dy per m⁴ when ``squared``) for N 2-D Gaussians.
+
+    ``means`` (N, 2) metres in the prior's CRS, ``covs`` (N, 2, 2) m². The prior is zero off its
+    grid, so Gaussians partly or wholly off the grid are fine. Validates the Gaussians, then
+    :func:`integrate_checked` (see it for ``method`` and the terrace settings). Raises ``ValueError``
+    naming the indices of non-finite means or of covariances that are not symmetric positive definite.
+    """
+    means, covs = check_gaussians(means, covs, "integrate")
+    if means.shape[1] != 2:
+        raise ValueError(f"integrate: Gaussians must be 2-D, got dimension {means.shape[1]}")
+    return _integrate(prior, means, covs, squared, method, n_terraces, n_strips, mass, shear, scheme)
+
+
+def integrate_checked(
+    prior: TerrainPrior,
+    means: np.ndarray,
+    covs: np.ndarray,
+    squared: bool = False,
+    *,
+    method: Literal["scalespace", "terraces"] = "scalespace",
+    n_terraces: int = N_TERRACES,
+    n_strips: int = N_STRIPS,
+    mass: float = MASS,
+    shear: float = SHEAR,
+    scheme: Literal["adaptive", "paper"] = "adaptive",
+) -> np.ndarray:
+    """:func:`integrate` for Gaussians already checked: float64 ``means`` (N, 2) m and ``covs``
+    (N, 2, 2) m² that passed :func:`~tracker.types.reports.check_gaussians` (those of a
+    :class:`~tracker.types.reports.Reports`, or their Gaussian products); it does not check them again.
+
+    ``method="scalespace"`` (default) integrates with the prior's Gaussian pyramid
+    (:mod:`tracker.integrate.scalespace`) the Gaussians that have most of their mass on the grid and sends
+    the rest (centres more than ``NEAR_RHO`` σ off the grid, spreads wider than the grid, thinner
+    than ~500:1) to the terraces; ``method="terraces"`` uses the terraces for all, as does
+    ``"scalespace"`` (with a warning) on grids of more than ``scalespace.MAX_CELLS`` cells.
+    Terrace settings: ``shear = 0`` keeps every ellipse at ``n_strips`` strips; ``scheme="paper"``
+    uses the paper's equal-mass terraces (with ``mass = 0.99`` its stop). Raises ``ValueError`` for
+    settings out of range.
+    """
+    return _integrate(prior, means, covs, squared, method, n_terraces, n_strips, mass, shear, scheme)
+
+
+def _integrate(prior, means, covs, squared, method, n_terraces, n_strips, mass, shear, scheme) -> np.ndarray:
+    """The dispatch behind :func:`integrate` and :func:`integrate_checked` (warnings point at their caller)."""
+    if not (isinstance(n_terraces, int | np.integer) and n_terraces >= 2):
+        raise ValueError(f"integrate: n_terraces must be an integer >= 2, got {n_terraces!r}")
+    if not (isinstance(n_strips, int | np.integer) and n_strips >= 1):
+        raise ValueError(f"integrate: n_strips must be an integer >= 1, got {n_strips!r}")
+    if not 0.0 < mass < 1.0:
+        raise ValueError(f"integrate: mass must be in (0, 1), got {mass!r}")
+    if not shear >= 0.0:
+        raise ValueError(f"integrate: shear must be >= 0, got {shear!r}")
+    if scheme not in ("adaptive", "paper"):
+        raise ValueError(f"integrate: scheme must be 'adaptive' or 'paper', got {scheme!r}")
+    if method not in METHODS:
+        raise ValueError(f"integrate: method must be one of {METHODS}, got {method!r}")
+    uc, vc, cuu, cuv, cvv = pixel_gaussians(prior, means, covs)
+    result = np.empty(means.shape[0])
+    rest = np.arange(means.shape[0])
+    if method == "scalespace" and prior.grid.height * prior.grid.width > scalespace.MAX_CELLS:
+        warnings.warn(
+            f"integrate: the prior's {prior.grid.height} x {prior.grid.width} grid is above scalespace.MAX_CELLS "
+            f"({scalespace.MAX_CELLS:,} cells; its pyramid would take ~{scalespace.pyramid_bytes(prior.grid.shape) / 2**30:.1f} GiB): "
+            "using the terraces",
+            stacklevel=3,
+        )
+        method = "terraces"
+    if method == "scalespace" and rest.size:
+        h, w = prior.grid.shape
+        handled = near_grid(uc, vc, cuu, cuv, cvv, float(w), float(h), NEAR_RHO, NEAR_SPREAD)
+        near = None if handled.all() else np.flatnonzero(handled)
+        px = (uc, vc, cuu, cuv, cvv) if near is None else tuple(a[near] for a in (uc, vc, cuu, cuv, cvv))
+        values, counts = scalespace.integrate_pixels(prior, *px, squared)
+        if near is None:
+            result, handled = values, counts > 0
+        else:
+            result[near] = values
+            handled[near] = counts > 0
+        rest = np.flatnonzero(~handled)
+    if rest.size:
+        result[rest] = integrate_terraces(
+            prior, *(a[rest] for a in (uc, vc, cuu, cuv, cvv)), squared, n_terraces, n_strips, mass, shear, scheme
+        )
+    return result

@@ -56,7 +56,7 @@ nodes' 4 x 4 B-spline footprints reach (35 x 35 float32, 4.9 KiB), so a look-up 
 cells on a 2,000² prior (lattices larger than the cache), 20 % more memory; a power of two keeps
 the block arithmetic to shifts."""
 MAX_CELLS = 25_000_000
-"""Largest grid (cells) :func:`tracker.integrate.terraces.integrate` builds a pyramid for (~3.5 GiB peak at
+"""Largest grid (cells) :func:`tracker.integrate.integrate` builds a pyramid for (~3.5 GiB peak at
 this size, see :func:`pyramid_bytes`); larger priors are integrated with the terraces."""
 
 

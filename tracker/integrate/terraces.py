@@ -1,11 +1,10 @@
 """Gaussian-terrace integration of 2-D Gaussians against a terrain prior (paper 1, appendix A).
 
-``integrate(prior, means, covs)`` returns ∫ G(y; a_n, A_n) r(y) dy for a batch of Gaussians in
-per m² (G and r are both densities per m²); ``squared=True`` returns ∫ G r² dy in per m⁴. By
-default it uses the prior's Gaussian pyramid (:mod:`tracker.integrate.scalespace`, ~30 look-ups per
-integral) and the terraces below for the Gaussians the pyramid is not made for;
-``method="terraces"`` uses the terraces throughout. A terrace integral costs about
-``n_terraces × n_strips`` summed-area-table rectangles whatever the Gaussian's spread.
+:func:`integrate_terraces` returns ∫ G(y; a_n, A_n) r(y) dy (per m²; ∫ G r² dy per m⁴ when
+``squared``) for a batch of Gaussians in pixel units (:func:`pixel_gaussians`). It is the
+integrator of :func:`tracker.integrate.integrate` with ``method="terraces"``, and takes the Gaussians
+the default pyramid (:mod:`tracker.integrate.scalespace`) is not made for. A terrace integral costs
+about ``n_terraces × n_strips`` summed-area-table rectangles whatever the Gaussian's spread.
 
 The Gaussian is replaced by a stack of concentric elliptical terraces (its constant-density
 contours at Mahalanobis radii ρ_1 < … < ρ_K): a step function, constant on each ring, whose
@@ -38,15 +37,12 @@ cost grows with eccentricity, never with spread.
 
 from __future__ import annotations
 
-import warnings
 from typing import Literal
 
 import numba as nb
 import numpy as np
 
 from pipeline.prior.terrain import TerrainPrior, sat_rect
-from tracker.integrate import scalespace
-from tracker.types.reports import check_gaussians
 
 N_TERRACES = 24
 """Default number of terraces (ellipses), from the accuracy study in docs/terrace.md."""
@@ -56,9 +52,6 @@ SHEAR = 16.0
 """Default strips per unit of shear κ (see :func:`n_strips_for`)."""
 MASS = 0.9999
 """Default Gaussian mass covered by the terraces (beyond the grid's nearest point)."""
-
-METHODS = ("scalespace", "terraces")
-"""The integrators :func:`integrate` offers (its ``method``)."""
 
 _FAR = 1400.0  # ρ_lo² beyond which e^{-ρ²/2} underflows: the integral is 0 in float64
 
@@ -416,84 +409,22 @@ def _paper_kernel(sat, uc, vc, cuu, cuv, cvv, strips, offset, rho, coef, t, tbar
         out[n] = acc / sd
 
 
-def integrate(
+def integrate_terraces(
     prior: TerrainPrior,
-    means: np.ndarray,
-    covs: np.ndarray,
-    squared: bool = False,
-    *,
-    method: Literal["scalespace", "terraces"] = "scalespace",
-    n_terraces: int = N_TERRACES,
-    n_strips: int = N_STRIPS,
-    mass: float = MASS,
-    shear: float = SHEAR,
-    scheme: Literal["adaptive", "paper"] = "adaptive",
+    uc: np.ndarray,
+    vc: np.ndarray,
+    cuu: np.ndarray,
+    cuv: np.ndarray,
+    cvv: np.ndarray,
+    squared: bool,
+    n_terraces: int,
+    n_strips: int,
+    mass: float,
+    shear: float,
+    scheme: Literal["adaptive", "paper"],
 ) -> np.ndarray:
-    """∫ G(y; a_n, A_n) r(y) dy per m² (or ∫ G r² dy per m⁴ when ``squared``) for N 2-D Gaussians.
-
-    ``means`` (N, 2) metres in the prior's CRS, ``covs`` (N, 2, 2) m². The prior is zero off its
-    grid, so Gaussians partly or wholly off the grid are fine.
-
-    ``method="scalespace"`` (default) integrates with the prior's Gaussian pyramid
-    (:mod:`tracker.integrate.scalespace`) the Gaussians that have most of their mass on the grid and sends
-    the rest (centres more than ``NEAR_RHO`` σ off the grid, spreads wider than the grid, thinner
-    than ~500:1) to the terraces; ``method="terraces"`` uses the terraces for all, as does
-    ``"scalespace"`` (with a warning) on grids of more than ``scalespace.MAX_CELLS`` cells.
-    Terrace settings: ``shear = 0`` keeps every ellipse at ``n_strips`` strips; ``scheme="paper"``
-    uses the paper's equal-mass terraces (with ``mass = 0.99`` its stop). Raises ``ValueError``
-    naming the indices of non-finite means or of covariances that are not symmetric positive definite.
-    """
-    means, covs = check_gaussians(means, covs, "integrate")
-    if means.shape[1] != 2:
-        raise ValueError(f"integrate: Gaussians must be 2-D, got dimension {means.shape[1]}")
-    if not (isinstance(n_terraces, int | np.integer) and n_terraces >= 2):
-        raise ValueError(f"integrate: n_terraces must be an integer >= 2, got {n_terraces!r}")
-    if not (isinstance(n_strips, int | np.integer) and n_strips >= 1):
-        raise ValueError(f"integrate: n_strips must be an integer >= 1, got {n_strips!r}")
-    if not 0.0 < mass < 1.0:
-        raise ValueError(f"integrate: mass must be in (0, 1), got {mass!r}")
-    if not shear >= 0.0:
-        raise ValueError(f"integrate: shear must be >= 0, got {shear!r}")
-    if scheme not in ("adaptive", "paper"):
-        raise ValueError(f"integrate: scheme must be 'adaptive' or 'paper', got {scheme!r}")
-    if method not in METHODS:
-        raise ValueError(f"integrate: method must be one of {METHODS}, got {method!r}")
-    uc, vc, cuu, cuv, cvv = pixel_gaussians(prior, means, covs)
-    result = np.empty(means.shape[0])
-    rest = np.arange(means.shape[0])
-    if method == "scalespace" and prior.grid.height * prior.grid.width > scalespace.MAX_CELLS:
-        warnings.warn(
-            f"integrate: the prior's {prior.grid.height} x {prior.grid.width} grid is above scalespace.MAX_CELLS "
-            f"({scalespace.MAX_CELLS:,} cells; its pyramid would take ~{scalespace.pyramid_bytes(prior.grid.shape) / 2**30:.1f} GiB): "
-            "using the terraces",
-            stacklevel=2,
-        )
-        method = "terraces"
-    if method == "scalespace" and rest.size:
-        h, w = prior.grid.shape
-        handled = near_grid(uc, vc, cuu, cuv, cvv, float(w), float(h), NEAR_RHO, NEAR_SPREAD)
-        near = None if handled.all() else np.flatnonzero(handled)
-        px = (uc, vc, cuu, cuv, cvv) if near is None else tuple(a[near] for a in (uc, vc, cuu, cuv, cvv))
-        values, counts = scalespace.integrate_pixels(prior, *px, squared)
-        if near is None:
-            result, handled = values, counts > 0
-        else:
-            result[near] = values
-            handled[near] = counts > 0
-        rest = np.flatnonzero(~handled)
-    if rest.size:
-        result[rest] = _terraces(prior, *(a[rest] for a in (uc, vc, cuu, cuv, cvv)), squared, n_terraces, n_strips, mass, shear, scheme)
-    return result
-
-
-NEAR_RHO = 0.5
-"""Mahalanobis distance from the grid beyond which ``method="scalespace"`` leaves a Gaussian to the terraces."""
-NEAR_SPREAD = 4.0
-"""2π√det A over the grid's area beyond which ``method="scalespace"`` leaves a Gaussian to the terraces."""
-
-
-def _terraces(prior, uc, vc, cuu, cuv, cvv, squared, n_terraces, n_strips, mass, shear, scheme) -> np.ndarray:
-    """The terrace integrals (per m² or m⁴) of Gaussians in pixel units."""
+    """The terrace integrals (per m², or per m⁴ when ``squared``) of Gaussians in pixel units
+    (:func:`pixel_gaussians`), with settings already checked by :func:`tracker.integrate.integrate_checked`."""
     strips = n_strips_for(cuu, cuv, cvv, n_strips, shear)
     counts, which = np.unique(strips, return_inverse=True)
     offsets, t, tbar, eta = strip_tables(counts)

@@ -31,8 +31,7 @@ from tqdm.auto import tqdm
 from common.atomic import atomic_paths
 from pipeline.prior.terrain import TerrainPrior
 from tracker.association.greedy import associate, perfect_estimate
-from tracker.integrate.terraces import METHODS as INTEGRATORS
-from tracker.integrate.terraces import integrate
+from tracker.integrate import METHODS, Integrator, integrate_checked
 from tracker.models.sfunc import ExpS, PoissonS, SModel
 from tracker.study.compare import best_tau_index, comparison_table, prob_better
 from tracker.study.metrics import ScoreGram, gospa, mixture_weights, ospa, posterior_means, purity
@@ -73,7 +72,7 @@ class ExperimentConfig:
     poisson_mu: float | None = None
     """Also run each variant with the exact eq. 16 S(n, k) under N_T ~ Poisson(mu) (no τ)."""
     integrator: str = "scalespace"
-    """``method`` of :func:`tracker.integrate.terraces.integrate`: "scalespace" or "terraces"."""
+    """``method`` of :func:`tracker.integrate.integrate`: "scalespace" or "terraces"."""
 
     def __post_init__(self) -> None:
         bad = [v for v in self.variants if v not in VARIANTS]
@@ -85,8 +84,8 @@ class ExperimentConfig:
             raise ValueError("taus must not be empty")
         if self.poisson_mu is not None:
             PoissonS(self.poisson_mu)  # validates mu
-        if self.integrator not in INTEGRATORS:
-            raise ValueError(f"integrator {self.integrator!r} unknown; choose from {INTEGRATORS}")
+        if self.integrator not in METHODS:
+            raise ValueError(f"integrator {self.integrator!r} unknown; choose from {METHODS}")
 
     @property
     def seeds(self) -> list[int]:
@@ -110,7 +109,7 @@ def _read_prior(prior_path: str, inode: int, mtime_ns: int, size: int) -> Terrai
 
 
 class CachedIntegrator:
-    """Memoises ``integrate(prior, means, covs, squared)`` per exact (mean, covariance) bytes for one prior.
+    """Memoises an :class:`~tracker.integrate.Integrator` per exact (mean, covariance) bytes for one prior.
 
     Across τ values (and between UT, TT and the scoring of one data set) the tracker integrates the
     same Gaussians again until its decisions diverge: ∫G(z, V) r of every report, and the candidate
@@ -118,7 +117,7 @@ class CachedIntegrator:
     ``misses`` count Gaussians.
     """
 
-    def __init__(self, prior: TerrainPrior, integrator: Callable[..., np.ndarray] = integrate) -> None:
+    def __init__(self, prior: TerrainPrior, integrator: Integrator = integrate_checked) -> None:
         self.prior = prior
         self.integrator = integrator
         self.table: dict[bytes, float] = {}  # ∫G r, keyed by the bytes of (mean, covariance)
@@ -173,7 +172,7 @@ class _Components:
             out[q] = idx
         return out
 
-    def gram(self, prior: TerrainPrior, integrator: Callable[..., np.ndarray], mixtures: Iterable[np.ndarray]) -> ScoreGram:
+    def gram(self, prior: TerrainPrior, integrator: Integrator, mixtures: Iterable[np.ndarray]) -> ScoreGram:
         """The Gram matrix over the pairs that occur together in one of ``mixtures`` (component indices)."""
         n = len(self.means)
         needed = np.zeros((n, n), dtype=bool)
@@ -198,7 +197,7 @@ def run_dataset(prior_path: str | os.PathLike, seed: int, config: ExperimentConf
     prior = _load_prior(str(prior_path))
     sc = simulate(prior, seed, config.n_targets, config.n_reports, config.region_m, config.keep_fraction, config.sensor)
     reports = sc.reports
-    integrator = CachedIntegrator(prior, partial(integrate, method=config.integrator))
+    integrator = CachedIntegrator(prior, partial(integrate_checked, method=config.integrator))
     comps = _Components()
     perfect = perfect_estimate(prior, reports, terrain=True, integrator=integrator)
     ref = comps.register(np.searchsorted(perfect.labels, reports.truth), perfect.means, perfect.covs, True)

@@ -16,22 +16,12 @@ perfect association scores exactly 0. Units: Score is per metre (Score² per m²
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from pipeline.prior.terrain import TerrainPrior
-from tracker.types.reports import gaussian_product
-
-Integrator = Callable[..., np.ndarray]
-
-
-def _terrace_integrate(prior: TerrainPrior, means: np.ndarray, covs: np.ndarray, squared: bool = False) -> np.ndarray:
-    # Imported here: the terrace module is a sibling component; metrics only needs its one function.
-    from tracker.integrate.terraces import integrate
-
-    return integrate(prior, means, covs, squared=squared)
+from tracker.integrate import Integrator, integrate_checked
+from tracker.types.reports import check_gaussians, gaussian_product
 
 
 class ScoreGram:
@@ -43,7 +33,8 @@ class ScoreGram:
     bound G(a_i; a_j, A_i+A_j)·max(r)^p / (c_i^{t_i} c_j^{t_j}) is below ``tol``·min(K_ii, K_jj) are set
     to 0; ``skipped_bound`` (n, n) keeps those bounds so callers can bound the error of a score.
     Attributes: ``K`` (n, n) per m², ``log_c`` (n,) log normalisers (0 for plain Gaussians).
-    ``integrator(prior, means, covs, squared)`` defaults to the terrace integration. ``needed``
+    The components are checked once here; ``integrator`` (an :class:`~tracker.integrate.Integrator`,
+    given them and their products) defaults to :func:`tracker.integrate.integrate_checked`. ``needed``
     (n, n) bool, optional: the pairs some scored mixture will use (others are not computed, and
     :meth:`score` refuses weights that would need them).
     """
@@ -58,13 +49,14 @@ class ScoreGram:
         integrator: Integrator | None = None,
         needed: np.ndarray | None = None,
     ) -> None:
-        self._integrator = integrator or _terrace_integrate
+        self._integrator = integrator or integrate_checked
         means = np.asarray(means, dtype=np.float64)
         covs = np.asarray(covs, dtype=np.float64)
         terrain = np.asarray(terrain, dtype=bool)
         n = means.shape[0]
         if covs.shape != (n, 2, 2) or terrain.shape != (n,) or means.shape != (n, 2):
             raise ValueError(f"ScoreGram: need means (n, 2), covs (n, 2, 2), terrain (n,); got {means.shape}, {covs.shape}, {terrain.shape}")
+        means, covs = check_gaussians(means, covs, "ScoreGram")
         self.n = n
         self.log_c = np.zeros(n)
         if terrain.any():
@@ -132,14 +124,16 @@ def posterior_means(
     """Means (n, 2) in metres of the terrain posteriors c⁻¹G(a, A, x)r(x), c(a) = ∫G(a, A, y)r(y)dy.
 
     Stein's identity ∇_a G = A⁻¹(x − a)G gives E[x] = a + A ∇_a ln c(a); the gradient is a central
-    difference of the terrace integral with steps ``step`` standard deviations along x and y.
+    difference of the integral with steps ``step`` standard deviations along x and y. The Gaussians
+    are checked once here; ``integrator`` defaults to :func:`tracker.integrate.integrate_checked`.
     """
     means = np.asarray(means, dtype=np.float64)
     covs = np.asarray(covs, dtype=np.float64)
     n = means.shape[0]
     if not n:
         return means.reshape(0, 2).copy()
-    integrate = integrator or _terrace_integrate
+    means, covs = check_gaussians(means, covs, "posterior_means")
+    integrate = integrator or integrate_checked
     h = step * np.sqrt(np.stack([covs[:, 0, 0], covs[:, 1, 1]], axis=1))  # (n, 2) metres
     shifts = np.concatenate([means + [1, 0] * h, means - [1, 0] * h, means + [0, 1] * h, means - [0, 1] * h])
     c = np.asarray(integrate(prior, shifts, np.tile(covs, (4, 1, 1)), squared=False), dtype=np.float64).reshape(4, n)

@@ -69,12 +69,31 @@ def _flags_2d(means: np.ndarray, covs: np.ndarray) -> np.ndarray:
 class Reports:
     """K position reports z_k ~ N(x_j, V_k): ``means`` (K, d) metres, ``covs`` (K, d, d) m^2,
     ``times`` (K,) seconds, and, for simulated data, ``truth`` (K,) the index of the target that made each
-    report (-1 when unknown)."""
+    report (-1 when unknown).
+
+    Every batch is validated once, when it is built (:func:`check_gaussians` on the Gaussians, then the
+    times and labels; ``ValueError`` naming the offending indices), and holds float64 means, covariances
+    and times and int64 labels. Consumers (the tracker, the integrators it calls) rely on that and do not
+    check again; :meth:`subset` keeps the guarantee without a second pass.
+    """
 
     means: np.ndarray
     covs: np.ndarray
     times: np.ndarray
     truth: np.ndarray
+
+    def __post_init__(self) -> None:
+        means, covs = check_gaussians(self.means, self.covs, "reports")
+        n = means.shape[0]
+        times = np.asarray(self.times, dtype=np.float64)
+        truth = np.asarray(self.truth, dtype=np.int64)
+        if times.shape != (n,) or truth.shape != (n,):
+            raise ValueError(f"reports: times and truth must be ({n},), got {times.shape} and {truth.shape}")
+        bad = np.flatnonzero(~np.isfinite(times))
+        if bad.size:
+            raise ValueError(f"reports: non-finite times at indices {bad[:10].tolist()}")
+        for name, value in (("means", means), ("covs", covs), ("times", times), ("truth", truth)):
+            object.__setattr__(self, name, value)  # frozen: the checked arrays replace the given ones
 
     @classmethod
     def create(
@@ -84,22 +103,21 @@ class Reports:
         times: np.ndarray | None = None,
         truth: np.ndarray | None = None,
     ) -> Reports:
-        means, covs = check_gaussians(means, covs, "reports")
-        n = means.shape[0]
-        times = np.zeros(n) if times is None else np.asarray(times, dtype=np.float64)
-        truth = np.full(n, -1, dtype=np.int64) if truth is None else np.asarray(truth, dtype=np.int64)
-        if times.shape != (n,) or truth.shape != (n,):
-            raise ValueError(f"reports: times and truth must be ({n},), got {times.shape} and {truth.shape}")
-        bad = np.flatnonzero(~np.isfinite(times))
-        if bad.size:
-            raise ValueError(f"reports: non-finite times at indices {bad[:10].tolist()}")
+        """A validated batch; ``times`` default to 0 s and ``truth`` to -1 (unknown)."""
+        n = np.shape(means)[0] if np.ndim(means) else 0
+        times = np.zeros(n) if times is None else times
+        truth = np.full(n, -1, dtype=np.int64) if truth is None else truth
         return cls(means, covs, times, truth)
 
     def __len__(self) -> int:
         return self.means.shape[0]
 
     def subset(self, idx: np.ndarray | slice) -> Reports:
-        return Reports(self.means[idx], self.covs[idx], self.times[idx], self.truth[idx])
+        """The reports at ``idx``: rows of a checked batch, so not checked again."""
+        sub = object.__new__(Reports)
+        for name in ("means", "covs", "times", "truth"):
+            object.__setattr__(sub, name, getattr(self, name)[idx])
+        return sub
 
 
 def gaussian_product(

@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 from pipeline.gis.grid import Grid
 from pipeline.prior.terrain import TerrainPrior
 from tracker.association.greedy import Tracker, associate, perfect_estimate
-from tracker.integrate.terraces import integrate
+from tracker.integrate import integrate
 from tracker.models.sfunc import ExpS, PoissonS, log_s
 from tracker.types.hypotheses import ConstantVelocity
 from tracker.types.reports import Reports

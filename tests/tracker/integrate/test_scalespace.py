@@ -29,9 +29,9 @@ from tests.tracker.integrate.test_terraces import (
     random_gaussians,
     rough_field,
 )
-from tracker.integrate import scalespace
+from tracker.integrate import integrate, scalespace
 from tracker.integrate.reference import reference_integrate
-from tracker.integrate.terraces import integrate, pixel_gaussians
+from tracker.integrate.terraces import pixel_gaussians
 
 
 def smoothed(values: np.ndarray, u: np.ndarray, v: np.ndarray, s: float) -> np.ndarray:

@@ -24,8 +24,8 @@ from pipeline.config.region import load_config
 from pipeline.gis.grid import Grid
 from pipeline.prior.terrain import TerrainPrior
 from tests.pipeline.gis_helpers import REGION_TOML, REPO, write_config
+from tracker.integrate import integrate
 from tracker.integrate.reference import covered_mass, reference_integrate
-from tracker.integrate.terraces import integrate
 
 CELL = 20.0
 H, W = 96, 128

@@ -14,7 +14,7 @@ from affine import Affine
 from pipeline.gis.grid import Grid
 from pipeline.prior.terrain import TerrainPrior
 from tracker.association.greedy import associate, perfect_estimate
-from tracker.integrate.terraces import integrate
+from tracker.integrate import integrate
 from tracker.models.sfunc import ExpS, PoissonS
 from tracker.study.experiment import (
     CachedIntegrator,
