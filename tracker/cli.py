@@ -10,9 +10,8 @@ import re
 import sys
 from pathlib import Path
 
-from tracker.association.greedy import DEFAULT_GAMMA, VARIANTS
-from tracker.integrate.terraces import METHODS as INTEGRATORS
-from tracker.io.tracks import track_files
+from tracker.association import DEFAULT_GAMMA, VARIANTS
+from tracker.integrate import METHODS
 from tracker.models.sfunc import ExpS, PoissonS
 from tracker.types.hypotheses import ConstantVelocity, Static
 
@@ -20,14 +19,15 @@ from tracker.types.hypotheses import ConstantVelocity, Static
 def cmd_run(args: argparse.Namespace) -> None:
     from functools import partial
 
-    from tracker.integrate.terraces import integrate
+    from tracker.integrate import integrate_checked
+    from tracker.run import track_files
 
     s_model = PoissonS(args.poisson_mu) if args.poisson_mu is not None else ExpS(args.tau)
     motion = ConstantVelocity(args.q, args.velocity_std) if args.motion == "cv" else Static()
     result = track_files(
         args.prior, args.reports, args.out, args.variant, s_model, motion, layer=args.layer,
         ellipse_prob=args.ellipse_prob, assignments_csv=args.assignments, gamma=args.gamma,
-        off_prior=args.off_prior, integrator=partial(integrate, method=args.integrator),
+        off_prior=args.off_prior, integrator=partial(integrate_checked, method=args.integrator),
     )
     skipped = int((result.assignments < 0).sum())
     print(f"{len(result.assignments)} reports -> {result.n_detected} targets ({args.variant}, {s_model}); "
@@ -35,7 +35,7 @@ def cmd_run(args: argparse.Namespace) -> None:
 
 
 def add_integrator_argument(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--integrator", choices=INTEGRATORS, default="scalespace",
+    p.add_argument("--integrator", choices=METHODS, default="scalespace",
                    help="how Gaussians are integrated against the prior: the prior's Gaussian pyramid (default, fast; "
                         "~17 float32 per cell of memory) or the paper's terraces on its summed-area tables")
 
@@ -90,8 +90,6 @@ def cmd_experiment(args: argparse.Namespace) -> None:
 
 def add_experiment_parser(sub) -> None:
     p = sub.add_parser("experiment", help="paper 1's simulation: UU, UT, TT over a tau grid on seeded data sets")
-    # Let "--tau -3:3:0.25" through: argparse would otherwise take "-3:3:0.25" for an option.
-    p._negative_number_matcher = re.compile(r"^-\d[\d.:,-]*$|^-\.\d[\d.:,-]*$")
     p.add_argument("--prior", type=Path, required=True, help="prior GeoTIFF (terrain-prior build)")
     p.add_argument("--datasets", type=int, default=28, help="number of data sets (seeds seed..seed+n-1); default 28")
     p.add_argument("--reports", type=int, default=100, help="reports per data set; default 100")
@@ -112,21 +110,15 @@ def add_experiment_parser(sub) -> None:
 
 
 def cmd_simulate(args: argparse.Namespace) -> None:
-    import numpy as np
-    import pandas as pd
-
-    from common.atomic import atomic_paths
     from pipeline.prior.terrain import TerrainPrior
-    from tracker.io.tracks import write_reports
+    from tracker.io.reports import write_reports, write_targets
     from tracker.study.simulate import simulate
 
     scenario = simulate(TerrainPrior.read(args.prior), args.seed, args.targets, args.reports)
     write_reports(args.out, scenario.reports)
     msg = f"{len(scenario.reports)} reports of {scenario.n_detected} of {len(scenario.targets)} targets; wrote {args.out}"
     if args.truth_out:
-        table = pd.DataFrame({"truth": np.arange(len(scenario.targets)), "x": scenario.targets[:, 0], "y": scenario.targets[:, 1]})
-        with atomic_paths(args.truth_out) as (tmp,):
-            table.to_csv(tmp, index=False, float_format="%.17g")
+        write_targets(args.truth_out, scenario.targets)
         msg += f" and {args.truth_out}"
     print(msg)
 
@@ -143,16 +135,15 @@ def add_simulate_parser(sub) -> None:
 
 
 def cmd_show(args: argparse.Namespace) -> None:
-    import pandas as pd
-
     from pipeline.prior.terrain import TerrainPrior
-    from tracker.io.tracks import read_reports, read_tracks
+    from tracker.io.reports import read_reports, read_targets
+    from tracker.io.tracks import read_tracks
     from tracker.study.plots import tracks_figure
 
     prior = TerrainPrior.read(args.prior)
     reports, _ = read_reports(args.reports)
     means, covs, _ = read_tracks(args.tracks)
-    targets = pd.read_csv(args.truth)[["x", "y"]].to_numpy() if args.truth else None
+    targets = read_targets(args.truth) if args.truth else None
     tracks_figure(prior, reports.means, reports.covs, means, covs, args.png, targets=targets)
     print(f"wrote {args.png}")
 
@@ -177,8 +168,29 @@ def make_parser() -> argparse.ArgumentParser:
     return parser
 
 
+_NEGATIVE_VALUE = re.compile(r"^-\.?\d[\d.:,-]*$")
+"""A value such as "-3:3:0.25" or "-1,1": argparse would take it for an option."""
+_NEGATIVE_VALUE_OPTIONS = ("--tau",)
+"""Options whose value may start with '-' (τ values, ranges and lists)."""
+
+
+def _attach_negative_values(argv: list[str]) -> list[str]:
+    """``--tau -3:3:0.25`` as ``--tau=-3:3:0.25``, the form argparse documents for values that start
+    with '-' (it reads a separate one as an option unless it is a plain negative number)."""
+    out: list[str] = []
+    i = 0
+    while i < len(argv):
+        if argv[i] in _NEGATIVE_VALUE_OPTIONS and i + 1 < len(argv) and _NEGATIVE_VALUE.match(argv[i + 1]):
+            out.append(f"{argv[i]}={argv[i + 1]}")
+            i += 2
+        else:
+            out.append(argv[i])
+            i += 1
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = make_parser().parse_args(argv)
+    args = make_parser().parse_args(_attach_negative_values(sys.argv[1:] if argv is None else list(argv)))
     try:
         args.func(args)
     except ValueError as exc:  # every input problem is a ValueError naming the file, column or rows

@@ -10,7 +10,8 @@ from pipeline.gis.grid import Grid
 from pipeline.prior.terrain import TerrainPrior
 from tracker.association.greedy import associate
 from tracker.cli import main
-from tracker.io.tracks import read_reports, read_tracks, write_reports, write_tracks
+from tracker.io.reports import read_reports, write_reports
+from tracker.io.tracks import read_tracks, write_tracks
 from tracker.study.simulate import simulate
 
 

@@ -37,7 +37,7 @@ def files(tmp_path_factory):
 @pytest.mark.parametrize("variant", ["TT", "UU"])
 def test_run_matches_library(files, variant, capsys):
     d, prior, df = files
-    from tracker.io.tracks import read_reports
+    from tracker.io.reports import read_reports
 
     out, assign = d / f"{variant}.gpkg", d / f"{variant}.csv"
     code = main(["run", "--prior", str(d / "prior.tif"), "--reports", str(d / "reports.csv"), "--variant", variant,
@@ -57,8 +57,8 @@ def test_run_with_the_terraces(files):
     d, prior, _ = files
     from functools import partial
 
-    from tracker.integrate.terraces import integrate
-    from tracker.io.tracks import read_reports
+    from tracker.integrate import integrate
+    from tracker.io.reports import read_reports
 
     code = main(["run", "--prior", str(d / "prior.tif"), "--reports", str(d / "reports.csv"), "--integrator", "terraces",
                  "--tau", "-1.0", "--assignments", str(d / "t.csv"), "--out", str(d / "t.gpkg")])
@@ -73,7 +73,7 @@ def test_run_with_the_terraces(files):
 
 def test_run_poisson(files):
     d, prior, _ = files
-    from tracker.io.tracks import read_reports
+    from tracker.io.reports import read_reports
 
     code = main(["run", "--prior", str(d / "prior.tif"), "--reports", str(d / "reports.csv"), "--poisson-mu", "10",
                  "--assignments", str(d / "p.csv"), "--out", str(d / "p.gpkg")])

@@ -1,4 +1,4 @@
-"""Reports files in, tracks GeoPackage out: round trips, closed-form ellipse areas, clear errors."""
+"""Tracks GeoPackage out: closed-form ellipse areas, empty estimates; assignments CSV; covariance columns."""
 
 from __future__ import annotations
 
@@ -6,67 +6,12 @@ import math
 
 import numpy as np
 import pandas as pd
-import pytest
 import shapely
 from pyogrio import raw
 
-from tracker.association.greedy import Estimate
-from tracker.io.tracks import ELLIPSE_VERTICES, read_reports, write_tracks
-
-
-def _table(n=5, seed=0):
-    rng = np.random.default_rng(seed)
-    return pd.DataFrame({
-        "x": rng.uniform(0, 1000, n), "y": rng.uniform(0, 1000, n), "time": np.arange(n) * 2.0,
-        "cov_xx": rng.uniform(10, 20, n), "cov_xy": rng.uniform(-3, 3, n), "cov_yy": rng.uniform(10, 20, n),
-        "truth": rng.integers(0, 3, n),
-    })
-
-
-def test_csv_round_trip(tmp_path):
-    df = _table()
-    df.to_csv(tmp_path / "r.csv", index=False)
-    reports, crs = read_reports(tmp_path / "r.csv")
-    assert crs is None
-    np.testing.assert_array_equal(reports.means, df[["x", "y"]].to_numpy())
-    np.testing.assert_array_equal(reports.covs[:, 0, 1], df["cov_xy"].to_numpy())
-    np.testing.assert_array_equal(reports.covs[:, 1, 0], df["cov_xy"].to_numpy())
-    np.testing.assert_array_equal(reports.times, df["time"].to_numpy())
-    np.testing.assert_array_equal(reports.truth, df["truth"].to_numpy())
-
-
-def test_gpkg_points_without_xy_columns(tmp_path):
-    df = _table()
-    fields = ["time", "cov_xx", "cov_xy", "cov_yy"]
-    geom = shapely.to_wkb(shapely.points(df[["x", "y"]].to_numpy()))
-    raw.write(tmp_path / "r.gpkg", geom, [df[f].to_numpy() for f in fields], fields, layer="reports",
-              driver="GPKG", geometry_type="Point", crs="EPSG:32634")
-    reports, crs = read_reports(tmp_path / "r.gpkg")
-    np.testing.assert_allclose(reports.means, df[["x", "y"]].to_numpy())
-    assert "32634" in crs
-    assert np.all(reports.truth == -1)
-
-
-def test_bad_report_files(tmp_path):
-    df = _table()
-    df.drop(columns=["cov_xy"]).to_csv(tmp_path / "a.csv", index=False)
-    with pytest.raises(ValueError, match=r"a\.csv: missing report columns \['cov_xy'\]"):
-        read_reports(tmp_path / "a.csv")
-    bad = df.copy()
-    bad.loc[3, "y"] = np.nan
-    bad.to_csv(tmp_path / "b.csv", index=False)
-    with pytest.raises(ValueError, match=r"b\.csv: .*indices \[3\]"):
-        read_reports(tmp_path / "b.csv")
-    bad = df.copy()
-    bad.loc[1, "cov_xy"] = 100.0  # |cov_xy| > sqrt(cov_xx cov_yy): not positive definite
-    bad.to_csv(tmp_path / "c.csv", index=False)
-    with pytest.raises(ValueError, match=r"c\.csv: .*positive definite at indices \[1\]"):
-        read_reports(tmp_path / "c.csv")
-    with pytest.raises(ValueError, match="no such file"):
-        read_reports(tmp_path / "missing.csv")
-    (tmp_path / "d.txt").write_text("x")
-    with pytest.raises(ValueError, match=r"d\.txt: reports must be"):
-        read_reports(tmp_path / "d.txt")
+from tracker.io.columns import COV_COLUMNS, cov_columns, covs_from_columns
+from tracker.io.tracks import ELLIPSE_VERTICES, write_assignments, write_tracks
+from tracker.types.estimate import Estimate
 
 
 def test_write_tracks_points_and_ellipses(tmp_path):
@@ -98,3 +43,17 @@ def test_write_empty_tracks(tmp_path):
     write_tracks(tmp_path / "e.gpkg", est, "EPSG:32634")
     meta, _, geom, _ = raw.read(tmp_path / "e.gpkg", layer="ellipses")
     assert len(geom) == 0
+
+
+def test_write_assignments(tmp_path):
+    path = write_assignments(tmp_path / "a.csv", np.array([0, 1, -1, 0]))
+    table = pd.read_csv(path)
+    assert list(table.columns) == ["report", "hypothesis"]
+    np.testing.assert_array_equal(table["hypothesis"], [0, 1, -1, 0])
+
+
+def test_cov_columns_round_trip():
+    covs = np.array([[[4.0, 1.5], [1.5, 9.0]], [[2.0, -0.5], [-0.5, 1.0]]])
+    columns = cov_columns(covs)
+    assert tuple(columns) == COV_COLUMNS
+    np.testing.assert_array_equal(covs_from_columns(*columns.values()), covs)
