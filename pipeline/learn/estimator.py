@@ -245,7 +245,7 @@ class PriorEstimator(BaseEstimator):
 
     def fit_stats(self, cells: CellStats, points: PointStats) -> PriorEstimator:
         """Fit from precomputed statistics: ``cells`` (e.g. from
-        :func:`pipeline.tiled.cells.tiled_cell_stats`, so no process holds the grid) and the points'
+        :func:`pipeline.tiled.learn.tiled_cell_stats`, so no process holds the grid) and the points'
         levels and values on the same terms (e.g. :func:`pipeline.tiled.learn.tiled_point_stats`).
 
         The same fit as :meth:`fit` on the grid those statistics came from (the terms carry the
