@@ -1,0 +1,26 @@
+"""Learning the likelihood tables from past targets: the estimator, its statistics, its evaluation.
+
+Public names only; ``pipeline.learn.plots`` (matplotlib) and ``pipeline.learn.run`` (the CLI use
+case) are imported from their modules.
+"""
+
+from pipeline.learn.estimator import SPATIAL, PriorEstimator, make_terms, template_start
+from pipeline.learn.evaluate import MODELS, CVResult, FoldModels, block_cv, default_bandwidths
+from pipeline.learn.kde import block_folds, block_ids, fit_kde_cv, grid_kde, log_kde_feature
+from pipeline.learn.sufficient import (
+    CellStats,
+    PointStats,
+    Term,
+    cached_cell_stats,
+    cell_stats,
+    check_points,
+    point_stats,
+    with_range,
+)
+
+__all__ = [
+    "MODELS", "SPATIAL", "CVResult", "CellStats", "FoldModels", "PointStats", "PriorEstimator", "Term",
+    "block_cv", "block_folds", "block_ids", "cached_cell_stats", "cell_stats", "check_points",
+    "default_bandwidths", "fit_kde_cv", "grid_kde", "log_kde_feature", "make_terms", "point_stats",
+    "template_start", "with_range",
+]

@@ -6,12 +6,18 @@ Targets are an inhomogeneous Poisson process with intensity λ(x) = exp(β₀ + 
 its marginal (for a categorical term: the share of points over the share of area per category),
 which is the ML fit only when the features are independent over the grid.
 
+X everywhere is the (N, 2) array of target points, x and y in metres in the grid's CRS, so
+scikit-learn's ``model_selection`` (``cross_val_score``, ``GroupKFold`` on spatial blocks, ``GridSearchCV``)
+works on it directly. The grid pass of the sufficient statistics is cached per feature stack
+(:func:`pipeline.learn.sufficient.cached_cell_stats`), so refits on other points (CV folds, clones) skip it.
+
 Example::
 
-    est = PriorEstimator(template=config.model).fit(stack, points_xy_m)
+    est = PriorEstimator(features=stack, template=config.model).fit(points_xy_m)
     est.likelihoods_["road_distance"]   # {"rmd": 97.1, "mv": 0.11}
     est.model_.write_toml("model.toml")  # what `terrain-prior build --model` reads
     est.score(test_xy_m)                 # mean log density, nats per point (density per m²)
+    cross_val_score(PriorEstimator(features=stack), xy_m, groups=block_ids(xy_m, origin, 2000.0), cv=GroupKFold(5))
 """
 
 from __future__ import annotations
@@ -23,6 +29,7 @@ from functools import cached_property
 
 import numpy as np
 from sklearn.base import BaseEstimator, clone
+from sklearn.utils.validation import check_is_fitted
 
 from pipeline.features.stack import Feature, FeatureStack
 from pipeline.learn.kde import block_folds, log_kde_feature
@@ -34,7 +41,8 @@ from pipeline.learn.sufficient import (
     CellStats,
     PointStats,
     Term,
-    cell_stats,
+    cached_cell_stats,
+    check_points,
     point_stats,
     with_range,
 )
@@ -78,7 +86,7 @@ def template_start(term: Term, template: LikelihoodModel | None, flexible: dict 
 def make_terms(
     stack: FeatureStack,
     template: LikelihoodModel | None,
-    features: tuple[str, ...] | None,
+    feature_names: tuple[str, ...] | None,
     flexible: dict[str, list[float]] | None,
     bin_width: float | None,
     n_bins: int,
@@ -89,7 +97,7 @@ def make_terms(
     the road form, other continuous features -> ``n_bins`` quantile bins. ``flexible`` replaces a
     feature's form by bins with these left edges (feature units).
     """
-    names = list(features or (template.terms if template else [f.name for f in stack]))
+    names = list(feature_names or (template.terms if template else [f.name for f in stack]))
     flexible = flexible or {}
     terms = []
     for name in names:
@@ -124,9 +132,11 @@ class PriorEstimator(BaseEstimator):
 
     Parameters
     ----------
+    features : the :class:`FeatureStack` the points are fitted on and scored on (None only for
+        :meth:`fit_stats`). Clones share it (not copied): its arrays must not change in place.
     template : hand-set :class:`LikelihoodModel` giving each feature's form (categorical, road,
         binned edges), structural zeros (values 0, fixed, not fitted) and start values.
-    features : feature names to use (default: the template's, else all).
+    feature_names : feature names to use (default: the template's, else all).
     method : ``"ml"`` (joint Poisson-process maximum likelihood) or ``"naive"`` (each term on its marginal).
     penalty_sd : σ of the Gaussian prior on each categorical / binned log-likelihood, nats.
         Default 3: a factor e³ ≈ 20 is one σ, so the penalty only bites for levels with few points.
@@ -150,8 +160,9 @@ class PriorEstimator(BaseEstimator):
 
     def __init__(
         self,
+        features: FeatureStack | None = None,
         template: LikelihoodModel | None = None,
-        features: tuple[str, ...] | None = None,
+        feature_names: tuple[str, ...] | None = None,
         method: str = "ml",
         penalty_sd: float = 3.0,
         smooth_sd: float = 1.0,
@@ -165,8 +176,9 @@ class PriorEstimator(BaseEstimator):
         bin_width: float | None = None,
         n_bins: int = 8,
     ) -> None:
-        self.template = template
         self.features = features
+        self.template = template
+        self.feature_names = feature_names
         self.method = method
         self.penalty_sd = penalty_sd
         self.smooth_sd = smooth_sd
@@ -180,6 +192,12 @@ class PriorEstimator(BaseEstimator):
         self.bin_width = bin_width
         self.n_bins = n_bins
 
+    def __sklearn_clone__(self) -> PriorEstimator:
+        """A clone sharing the feature stack: it is the data the points live on, not a setting, and
+        a deep copy per CV fold would copy the grid and miss its cached grid pass."""
+        params = self.get_params(deep=False)
+        return type(self)(**{k: v if k == "features" else clone(v, safe=False) for k, v in params.items()})
+
     # ----------------------------------------------------------------------------------- fit
     def _check_params(self) -> None:
         if self.method not in ("ml", "naive"):
@@ -191,20 +209,22 @@ class PriorEstimator(BaseEstimator):
         if self.on_zero == "soften" and not 0 < self.soften < 1:
             raise ValueError(f"soften must be in (0, 1), got {self.soften}")
 
-    def fit(self, features: FeatureStack, points: np.ndarray) -> PriorEstimator:
-        """Fit to points (N, 2) in metres in the grid's CRS. Points off the grid are dropped and
-        counted; points on structural zeros are dropped or the zeros softened (``on_zero``)."""
+    def fit(self, X: np.ndarray, y: None = None) -> PriorEstimator:
+        """Fit to points X (N, 2) in metres in the grid's CRS (``y`` is ignored). Points off the grid are
+        dropped and counted; points on structural zeros are dropped or the zeros softened (``on_zero``)."""
         self._check_params()
+        if self.features is None:
+            raise ValueError("PriorEstimator.fit: no feature stack; give PriorEstimator(features=stack, ...)")
+        pts = check_points(X)
         if self.spatial_bandwidth is not None and np.ndim(self.spatial_bandwidth) > 0:
-            return self._fit_bandwidths(features, points)
+            return self._fit_bandwidths(pts)
         t0, c0 = time.perf_counter(), time.process_time()
-        pts = np.asarray(points, dtype=np.float64)
+        features = stack = self.features
         self.spatial_bandwidth_ = float(self.spatial_bandwidth) if self.spatial_bandwidth else None
-        terms, _ = make_terms(features, self.template, self.features, self.flexible, self.bin_width, self.n_bins)
-        stack = features
+        terms, _ = make_terms(features, self.template, self.feature_names, self.flexible, self.bin_width, self.n_bins)
         loo = None
         if self.spatial_bandwidth_:
-            inside = _inside(features, pts)
+            inside = features.grid.contains(pts[:, 0], pts[:, 1])
             groups = None
             if self.spatial_block:
                 groups = block_folds(pts[inside], features.grid.bounds[:2], self.spatial_block, self.spatial_folds)
@@ -214,22 +234,23 @@ class PriorEstimator(BaseEstimator):
             stack = FeatureStack(features.grid, dict(features.features))
             stack.add(Feature(SPATIAL, logk, "continuous", "log(KDE over uniform)"))
             terms.append(with_range(Term(SPATIAL, "kde", bin_width=SPATIAL_BIN), logk))
-        cells = cell_stats(stack, tuple(terms))
+        cells = cached_cell_stats(stack, tuple(terms))
         pass_times = (time.perf_counter() - t0, time.process_time() - c0)
         pstats = point_stats(stack, tuple(terms), pts)
         if loo is not None:
             pstats.value[:, -1] = loo
         self.stack_ = stack
+        self.n_features_in_ = 2
         return self._fit_from_stats(cells, pstats, t0, c0, pass_times)
 
     def fit_stats(self, cells: CellStats, points: PointStats) -> PriorEstimator:
         """Fit from precomputed statistics: ``cells`` (e.g. from
-        :func:`pipeline.tiled.cells.tiled_cell_stats`, so no process holds the grid) and the points'
+        :func:`pipeline.tiled.learn.tiled_cell_stats`, so no process holds the grid) and the points'
         levels and values on the same terms (e.g. :func:`pipeline.tiled.learn.tiled_point_stats`).
 
         The same fit as :meth:`fit` on the grid those statistics came from (the terms carry the
         template's zeros; start values come from ``template``). Without the grid there is no
-        ``prior_`` (so no :meth:`score` / :meth:`log_density`) and no hybrid spatial term.
+        ``prior_`` (so no :meth:`score` / :meth:`score_samples`) and no hybrid spatial term.
         """
         self._check_params()
         if self.spatial_bandwidth is not None:
@@ -240,6 +261,7 @@ class PriorEstimator(BaseEstimator):
         t0, c0 = time.perf_counter(), time.process_time()
         self.spatial_bandwidth_ = None
         self.stack_ = None
+        self.n_features_in_ = 2
         return self._fit_from_stats(cells, points, t0, c0, (np.nan, np.nan))  # the pass ran elsewhere
 
     def _fit_from_stats(self, cells: CellStats, pstats: PointStats, t0: float, c0: float,
@@ -296,9 +318,9 @@ class PriorEstimator(BaseEstimator):
             )
         return self
 
-    def _fit_bandwidths(self, features: FeatureStack, points: np.ndarray) -> PriorEstimator:
+    def _fit_bandwidths(self, points: np.ndarray) -> PriorEstimator:
         """Fit the hybrid at each candidate bandwidth; keep the best held-out-value log-likelihood."""
-        fits = [clone(self).set_params(spatial_bandwidth=float(b)).fit(features, points) for b in self.spatial_bandwidth]
+        fits = [clone(self).set_params(spatial_bandwidth=float(b)).fit(points) for b in self.spatial_bandwidth]
         best = max(fits, key=lambda e: e.loglik_)
         self.__dict__.pop("prior_", None)
         self.__dict__.update({k: v for k, v in best.__dict__.items() if k.endswith("_") and not k.startswith("_")})
@@ -377,16 +399,22 @@ class PriorEstimator(BaseEstimator):
             r *= np.exp(logr - logr.max())
         return TerrainPrior.from_array(r, self.stack_.grid, self.model_.to_dict())
 
-    def log_density(self, points: np.ndarray) -> np.ndarray:
-        """log p(x) per point (log per m²); −inf off the grid or on an unsoftened structural zero."""
-        pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    def score_samples(self, X: np.ndarray) -> np.ndarray:
+        """log p(x) per point of X (N, 2) (metres; log of a density per m²); −inf off the grid or on an
+        unsoftened structural zero."""
+        check_is_fitted(self)
+        pts = check_points(X)
         with np.errstate(divide="ignore"):
             return np.log(self.prior_.density_at(pts[:, 0], pts[:, 1]))
 
-    def score(self, points: np.ndarray) -> float:
-        """Mean log density per point (nats; density per m²) over points where it is positive;
-        points off the grid or on structural zeros are left out with a warning giving their count."""
-        ld = self.log_density(points)
+    def score(self, X: np.ndarray, y: None = None) -> float:
+        """Mean log density per point of X (nats; density per m²) over points where it is positive;
+        points off the grid or on structural zeros are left out with a warning giving their count.
+
+        The mean (not the sum) so that scores of folds with different numbers of held-out points
+        are comparable, as ``cross_val_score`` averages them; it is what :func:`pipeline.learn.evaluate.block_cv`
+        reports per fold."""
+        ld = self.score_samples(X)
         ok = np.isfinite(ld)
         if not ok.all():
             warnings.warn(f"score: {int((~ok).sum())} of {len(ld)} points have zero density (off grid or on a structural zero); left out", stacklevel=2)
@@ -417,11 +445,6 @@ class PriorEstimator(BaseEstimator):
 
 
 # ------------------------------------------------------------------------------- helpers
-def _inside(stack: FeatureStack, pts: np.ndarray) -> np.ndarray:
-    u, v = stack.grid.to_pixel(pts[:, 0], pts[:, 1])
-    return (u >= 0) & (u < stack.grid.width) & (v >= 0) & (v < stack.grid.height)
-
-
 def _with_reference(term: Term, level_area: np.ndarray) -> Term:
     """Discrete terms: the reference (r = 1) is the non-zero level with the most area."""
     if term.form not in DISCRETE_FORMS:

@@ -4,20 +4,27 @@ Points are grouped into square blocks (``block_size`` metres); folds hold out wh
 (scikit-learn's GroupKFold), so a held-out point's neighbours are held out with it and a model
 cannot win by memorising the training points around it. Scores are mean log densities per
 held-out point in nats (densities per m²); gains are over the uniform prior on the grid.
+
+The folds run through scikit-learn's ``cross_validate``: :class:`FoldModels` fits every compared
+model on a training fold, one scorer per model scores it on the held-out fold.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
-from sklearn.base import clone
-from sklearn.model_selection import GroupKFold
+from sklearn.base import BaseEstimator, clone
+from sklearn.model_selection import GroupKFold, cross_validate
+from sklearn.neighbors import KernelDensity
 from tqdm import tqdm
 
 from pipeline.features.stack import FeatureStack
 from pipeline.learn.estimator import PriorEstimator
 from pipeline.learn.kde import block_ids, fit_kde_cv
+from pipeline.learn.sufficient import check_points
 
 MODELS = ("uniform", "naive", "terrain", "kde", "hybrid")
 
@@ -78,8 +85,55 @@ def default_bandwidths(stack: FeatureStack, n: int = 10) -> np.ndarray:
     return np.geomspace(2 * g.dx, max(short / 5, 4 * g.dx), n)
 
 
+class FoldModels(BaseEstimator):
+    """Every model of :func:`block_cv` fitted on one training fold of points (N, 2) in metres.
+
+    ``estimator`` (a :class:`PriorEstimator` carrying the feature stack) is the terrain model;
+    "naive" is its ``method="naive"`` twin; "kde" is scikit-learn's KernelDensity with the
+    bandwidth among ``bandwidths`` (metres) chosen by block CV inside the training fold (blocks of
+    ``block_size`` metres from the grid's corner); "hybrid" adds the spatial term at that bandwidth,
+    γ fitted on KDE values from ``n_folds`` block folds of the training points.
+    """
+
+    def __init__(self, estimator: PriorEstimator, models: tuple[str, ...] = MODELS, bandwidths: np.ndarray | None = None,
+                 block_size: float = 2000.0, n_folds: int = 5) -> None:
+        self.estimator = estimator
+        self.models = models
+        self.bandwidths = bandwidths
+        self.block_size = block_size
+        self.n_folds = n_folds
+
+    def fit(self, X: np.ndarray, y: None = None, on_fit: Callable[[int], object] | None = None) -> FoldModels:
+        """Fit the models on X; ``on_fit(1)`` is called when done (a progress bar's update)."""
+        stack = self.estimator.features
+        self.kde_: KernelDensity | None = None
+        if "kde" in self.models or "hybrid" in self.models:
+            self.kde_ = fit_kde_cv(X, block_ids(X, stack.grid.bounds[:2], self.block_size), self.bandwidths)
+        params = {"naive": {"method": "naive"}, "terrain": {},
+                  "hybrid": {"spatial_bandwidth": float(self.kde_.bandwidth) if self.kde_ else None,
+                             "spatial_block": self.block_size, "spatial_folds": self.n_folds}}
+        self.fits_ = {m: clone(self.estimator).set_params(**params[m]).fit(X) for m in self.models if m in params}
+        if on_fit is not None:
+            on_fit(1)
+        return self
+
+    def score_model(self, model: str, X: np.ndarray) -> float:
+        """Mean log density (nats per point, density per m²) of ``model`` at held-out points X;
+        ValueError when it gives any of them zero density."""
+        if model == "uniform":
+            g = self.estimator.features.grid
+            return float(-np.log(g.width * g.height * g.cell_area))
+        ld = self.kde_.score_samples(X) if model == "kde" else self.fits_[model].score_samples(X)
+        if not np.all(np.isfinite(ld)):
+            raise ValueError(f"block_cv: model {model} gives zero density to {int((~np.isfinite(ld)).sum())} held-out points")
+        return float(ld.mean())
+
+
+def _held_out(est: FoldModels, X: np.ndarray, y: None = None, *, model: str) -> float:
+    return est.score_model(model, X)
+
+
 def block_cv(
-    stack: FeatureStack,
     points: np.ndarray,
     estimator: PriorEstimator,
     n_folds: int = 5,
@@ -88,11 +142,11 @@ def block_cv(
     models: tuple[str, ...] = MODELS,
     progress: bool = True,
 ) -> CVResult:
-    """Spatial block CV of ``models`` (a subset of :data:`MODELS`).
+    """Spatial block CV of ``models`` (a subset of :data:`MODELS`) at points (N, 2) in metres on
+    ``estimator``'s feature stack.
 
-    ``estimator`` sets the terrain model (template, penalty, zero policy); "naive" is its
-    ``method="naive"`` twin and "hybrid" adds the spatial term (γ fitted on KDE values from other
-    block folds of the training points) with the KDE baseline's bandwidth, chosen by block CV
+    ``estimator`` sets the terrain model (template, penalty, zero policy); the models are those of
+    :class:`FoldModels`. The hybrid's bandwidth is the KDE baseline's, chosen by block CV
     inside the training folds. (Choosing it instead by the hybrid's own held-out-fold likelihood
     among wider candidates picked wide kernels with large γ that failed on an isolated held-out
     settlement in Swellendam: one partition of the training blocks is a noisy criterion.) Points off the grid, and (with ``on_zero="drop"``) on
@@ -101,40 +155,25 @@ def block_cv(
     unknown = set(models) - set(MODELS)
     if unknown or "uniform" not in models:
         raise ValueError(f"models must include 'uniform' and be among {MODELS}, got {models}")
-    pts = np.asarray(points, dtype=np.float64)
+    pts = check_points(points)
+    stack = estimator.features
     base = clone(estimator).set_params(spatial_bandwidth=None, method="ml")
-    usable = base.fit(stack, pts).used_mask_
+    usable = base.fit(pts).used_mask_
     pts = pts[usable]
-    xmin, ymin, _, _ = stack.grid.bounds
-    groups = block_ids(pts, (xmin, ymin), block_size)
+    groups = block_ids(pts, stack.grid.bounds[:2], block_size)
     n_blocks = len(np.unique(groups))
     if n_blocks < n_folds:
         raise ValueError(f"block_cv: only {n_blocks} blocks of {block_size:g} m hold points; need >= n_folds = {n_folds}")
     bw_grid = default_bandwidths(stack) if bandwidths is None else np.asarray(bandwidths, dtype=np.float64)
-    area = stack.grid.width * stack.grid.height * stack.grid.cell_area
-    splits = list(GroupKFold(n_splits=n_folds).split(pts, groups=groups))
-    scores = np.full((n_folds, len(models)), np.nan)
-    bws = np.full(n_folds, np.nan)
-    for f, (tr, te) in enumerate(tqdm(splits, desc="block CV", unit="fold", disable=not progress)):
-        train, test = pts[tr], pts[te]
-        kde = None
-        if "kde" in models or "hybrid" in models:
-            kde = fit_kde_cv(train, groups[tr], bw_grid)
-            bws[f] = kde.bandwidth
-        for j, m in enumerate(models):
-            if m == "uniform":
-                scores[f, j] = -np.log(area)
-            elif m == "kde":
-                scores[f, j] = float(kde.score_samples(test).mean())
-            else:
-                params = {"naive": {"method": "naive"}, "terrain": {}, "hybrid": {"spatial_bandwidth": float(kde.bandwidth) if kde else None,
-                                      "spatial_block": block_size, "spatial_folds": n_folds}}[m]
-                est = clone(base).set_params(**params).fit(stack, train)
-                ld = est.log_density(test)
-                if not np.all(np.isfinite(ld)):
-                    raise ValueError(f"block_cv fold {f}: model {m} gives zero density to {int((~np.isfinite(ld)).sum())} held-out points")
-                scores[f, j] = float(ld.mean())
+    folds = FoldModels(base, tuple(models), bw_grid, float(block_size), n_folds)
+    with tqdm(total=n_folds, desc="block CV", unit="fold", disable=not progress) as bar:
+        cv = cross_validate(folds, pts, groups=groups, cv=GroupKFold(n_splits=n_folds),
+                            scoring={m: partial(_held_out, model=m) for m in models}, params={"on_fit": bar.update},
+                            return_estimator=True, return_indices=True, error_score="raise")
+    kdes = [e.kde_ for e in cv["estimator"]]
     return CVResult(
-        tuple(models), scores, np.array([len(te) for _, te in splits]), bws, float(block_size),
+        tuple(models), np.column_stack([cv[f"test_{m}"] for m in models]),
+        np.array([len(te) for te in cv["indices"]["test"]]),
+        np.array([k.bandwidth if k is not None else np.nan for k in kdes], dtype=np.float64), float(block_size),
         int(len(points)), int(len(points) - usable.sum()),
     )

@@ -18,9 +18,8 @@ TRUNCATE = 4.0
 
 def cell_counts(grid: Grid, points: np.ndarray) -> np.ndarray:
     """Points per cell (H, W); points off the grid are left out."""
-    u, v = grid.to_pixel(points[:, 0], points[:, 1])
-    ok = (u >= 0) & (u < grid.width) & (v >= 0) & (v < grid.height)
-    flat = v[ok].astype(np.intp) * grid.width + u[ok].astype(np.intp)
+    row, col, ok = grid.cell_index(points[:, 0], points[:, 1])
+    flat = row[ok] * grid.width + col[ok]
     return np.bincount(flat, minlength=grid.height * grid.width).reshape(grid.shape).astype(np.float64)
 
 

@@ -118,7 +118,7 @@ def diagnostics(report: LearnReport) -> dict:
     out = {
         "points": {"read": est.n_points_, "used": est.n_used_, "off_grid": est.n_off_grid_,
                    "on_structural_zero": est.n_on_zero_, "on_zero_detail": est.on_zero_detail_, "policy": est.on_zero},
-        "settings": {k: v for k, v in est.get_params().items() if k != "template"},
+        "settings": {k: v for k, v in est.get_params().items() if k not in ("features", "template")},
         "units": "likelihoods relative to the reference level (1); stderr of categorical/binned values "
                  "is of log r (nats); road rmd in metres; scores in nats per point, densities per m^2",
         "ml": fit_info(est),
@@ -166,25 +166,25 @@ def learn_region(
         raise ValueError("--hybrid-prior needs the whole grid (the KDE term); it cannot be used with --tiled / --scheduler")
     pts = read_targets(targets, config.grid, layer, x, y, targets_crs)
     est = PriorEstimator(
-        template=config.model, features=lc.features, penalty_sd=lc.penalty_sd, smooth_sd=lc.smooth_sd,
+        template=config.model, feature_names=lc.features, penalty_sd=lc.penalty_sd, smooth_sd=lc.smooth_sd,
         on_zero=lc.on_zero, soften=lc.soften, flexible=lc.flexible or None, bin_width=lc.bin_width,
     )
     if tiled:
         return _learn_tiled(config, lc, est, pts, targets, out, scheduler, tile, cv, progress)
     stack = build_features(config, progress)
-    est.fit(stack, pts)
-    naive = clone(est).set_params(method="naive").fit(stack, pts)
+    est.set_params(features=stack).fit(pts)
+    naive = clone(est).set_params(method="naive").fit(pts)
     hyb = None
     if lc.hybrid:
         used = pts[est.used_mask_]
         bws = np.asarray(lc.bandwidths_m) if lc.bandwidths_m else default_bandwidths(stack)
         bw = fit_kde_cv(used, block_ids(used, config.grid.bounds[:2], lc.block_size_m), bws).bandwidth
         hyb = clone(est).set_params(spatial_bandwidth=float(bw), spatial_block=lc.block_size_m,
-                                    spatial_folds=lc.folds).fit(stack, pts)
+                                    spatial_folds=lc.folds).fit(pts)
     result = None
     if cv:
         models = ("uniform", "naive", "terrain", "kde", "hybrid") if lc.hybrid else ("uniform", "naive", "terrain", "kde")
-        result = block_cv(stack, pts, est, lc.folds, lc.block_size_m,
+        result = block_cv(pts, est, lc.folds, lc.block_size_m,
                           np.asarray(lc.bandwidths_m) if lc.bandwidths_m else None, models, progress)
     report = _write(LearnReport(est, naive, hyb, result, _paths(out), lc), targets)
     if hybrid_prior is not None and hyb is not None:

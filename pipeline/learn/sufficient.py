@@ -11,6 +11,7 @@ combination, so the only approximation is r evaluated at that mean within one fi
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -203,6 +204,29 @@ def cell_stats(stack: FeatureStack, terms: tuple[Term, ...], rows_per_chunk: int
     return CellStats(terms, index, value, n * stack.grid.cell_area, stack.grid.cell_area, h * w)
 
 
+_PASSES: dict[int, tuple[weakref.ref, dict[tuple[Term, ...], tuple[tuple[np.ndarray, ...], CellStats]]]] = {}
+"""Grid passes per live stack (by id, dropped when the stack is collected): terms -> (arrays read, stats)."""
+
+
+def cached_cell_stats(stack: FeatureStack, terms: tuple[Term, ...]) -> CellStats:
+    """:func:`cell_stats`, run once per stack and terms: a refit on the same stack (CV folds, clones,
+    other points) reuses the pass. A feature replaced in the stack (another array) runs it again;
+    arrays changed in place are not detected."""
+    terms = tuple(terms)
+    key = id(stack)
+    entry = _PASSES.get(key)
+    if entry is None or entry[0]() is not stack:
+        entry = (weakref.ref(stack, lambda _, k=key: _PASSES.pop(k, None)), {})
+        _PASSES[key] = entry
+    arrays = tuple(stack[t.feature].values for t in terms)
+    hit = entry[1].get(terms)
+    if hit is not None and all(a is b for a, b in zip(hit[0], arrays, strict=True)):
+        return hit[1]
+    cells = cell_stats(stack, terms)
+    entry[1][terms] = (arrays, cells)
+    return cells
+
+
 def check_points(points: np.ndarray) -> np.ndarray:
     """Points as a float (N, 2) array of x, y metres; ValueError naming bad shapes or indices."""
     pts = np.asarray(points, dtype=np.float64)
@@ -217,8 +241,7 @@ def check_points(points: np.ndarray) -> np.ndarray:
 def point_stats(stack: FeatureStack, terms: tuple[Term, ...], points: np.ndarray) -> PointStats:
     """Level index and exact value per term of points (N, 2) in metres in the grid's CRS."""
     pts = check_points(points)
-    u, v = stack.grid.to_pixel(pts[:, 0], pts[:, 1])
-    inside = (u >= 0) & (u < stack.grid.width) & (v >= 0) & (v < stack.grid.height)
+    inside = stack.grid.contains(pts[:, 0], pts[:, 1])
     sampled = stack.sample(pts[:, 0], pts[:, 1])
     index = np.empty((pts.shape[0], len(terms)), dtype=np.int64)
     value = np.full(index.shape, np.nan)

@@ -8,6 +8,8 @@ import numpy as np
 import pytest
 from affine import Affine
 from sklearn.base import clone
+from sklearn.exceptions import NotFittedError
+from sklearn.utils.estimator_checks import check_estimator
 
 from pipeline.build.region import build_features, build_prior
 from pipeline.config.region import load_config
@@ -61,7 +63,7 @@ def estimates(est: PriorEstimator, keys) -> tuple[np.ndarray, np.ndarray]:
 def fit_region(region, n: int, seed: int) -> tuple[PriorEstimator, dict]:
     stack, model, density = region
     pts = sample_points(density, stack.grid, n, np.random.default_rng(seed))
-    est = PriorEstimator(template=model).fit(stack, pts)
+    est = PriorEstimator(features=stack, template=model).fit(pts)
     return est, true_params(est, model)
 
 
@@ -105,7 +107,7 @@ def test_standard_errors_are_calibrated_over_replicates() -> None:
     rng = np.random.default_rng(7)
     z2 = []
     for _ in range(30):
-        est = PriorEstimator(template=TRUE_MODEL).fit(stack, sample_points(density, stack.grid, 1500, rng))
+        est = PriorEstimator(features=stack, template=TRUE_MODEL).fit(sample_points(density, stack.grid, 1500, rng))
         truth = true_params(est, TRUE_MODEL)
         val, se = estimates(est, truth)
         z2.extend(((val - np.array(list(truth.values()))) / se) ** 2)
@@ -130,8 +132,8 @@ def test_naive_equals_ml_when_features_are_independent() -> None:
     template = LikelihoodModel({"land": CategoricalLikelihood({"grass": 1.0, "bush": 0.5, "rock": 0.2}),
                                 "road_distance": RoadDistanceLikelihood(100.0, 0.2)})
     pts = sample_points(template.evaluate(stack), stack.grid, 3000, np.random.default_rng(2))
-    ml = PriorEstimator(template=template).fit(stack, pts)
-    naive = PriorEstimator(template=template, method="naive").fit(stack, pts)
+    ml = PriorEstimator(features=stack, template=template).fit(pts)
+    naive = PriorEstimator(features=stack, template=template, method="naive").fit(pts)
     for f in ("land", "road_distance"):
         for k, v in ml.likelihoods_[f].items():
             assert naive.likelihoods_[f][k] == pytest.approx(v, rel=1e-4), (f, k)
@@ -140,8 +142,8 @@ def test_naive_equals_ml_when_features_are_independent() -> None:
 def test_naive_is_count_ratio_and_differs_from_ml_when_features_correlate() -> None:
     stack = small_stack()
     pts = sample_points(TRUE_MODEL.evaluate(stack), stack.grid, 4000, np.random.default_rng(9))
-    naive = PriorEstimator(template=TRUE_MODEL, method="naive", penalty_sd=1e6).fit(stack, pts)
-    ml = PriorEstimator(template=TRUE_MODEL, penalty_sd=1e6).fit(stack, pts)
+    naive = PriorEstimator(features=stack, template=TRUE_MODEL, method="naive", penalty_sd=1e6).fit(pts)
+    ml = PriorEstimator(features=stack, template=TRUE_MODEL, penalty_sd=1e6).fit(pts)
     # oracle: share of points over share of area per land class, straight from the arrays
     land = stack["land"].values
     r, c = (np.array(stack.grid.to_pixel(pts[:, 0], pts[:, 1]))[::-1]).astype(int)
@@ -159,7 +161,7 @@ def test_score_is_mean_log_density_of_the_normalised_fit() -> None:
     stack = small_stack()
     rng = np.random.default_rng(12)
     density = TRUE_MODEL.evaluate(stack)
-    est = PriorEstimator(template=TRUE_MODEL).fit(stack, sample_points(density, stack.grid, 800, rng))
+    est = PriorEstimator(features=stack, template=TRUE_MODEL).fit(sample_points(density, stack.grid, 800, rng))
     test = sample_points(density, stack.grid, 300, rng)
     # oracle: evaluate the fitted table per cell, normalise by hand (per m²), look up each point's cell
     r = est.model_.evaluate(stack)
@@ -174,8 +176,8 @@ def test_score_is_mean_log_density_of_the_normalised_fit() -> None:
 
 def test_model_toml_round_trip_through_the_pipeline(tmp_path) -> None:
     stack = small_stack()
-    est = PriorEstimator(template=TRUE_MODEL).fit(
-        stack, sample_points(TRUE_MODEL.evaluate(stack), stack.grid, 600, np.random.default_rng(1)))
+    est = PriorEstimator(features=stack, template=TRUE_MODEL).fit(
+        sample_points(TRUE_MODEL.evaluate(stack), stack.grid, 600, np.random.default_rng(1)))
     path = est.model_.write_toml(tmp_path / "model.toml")
     back = LikelihoodModel.read_toml(path)
     assert back.to_dict() == est.model_.to_dict()
@@ -191,22 +193,22 @@ def test_points_on_water_and_off_grid_are_counted_dropped_or_softened() -> None:
     wet = np.column_stack(stack.grid.transform @ (cols[:7] + 0.5, rows[:7] + 0.5))
     allpts = np.vstack([pts, wet, [[0.0, 0.0], [1e9, 1e9]]])
     with pytest.warns(UserWarning, match=r"2 of 509 points off the grid.*7 on structural zeros"):
-        dropped = PriorEstimator(template=TRUE_MODEL).fit(stack, allpts)
+        dropped = PriorEstimator(features=stack, template=TRUE_MODEL).fit(allpts)
     assert (dropped.n_used_, dropped.n_on_zero_, dropped.n_off_grid_) == (500, 7, 2)
     assert dropped.on_zero_detail_ == {"water": {"water": 7}}
     assert dropped.likelihoods_["water"]["water"] == 0.0
-    assert np.isneginf(dropped.log_density(wet)).all()
+    assert np.isneginf(dropped.score_samples(wet)).all()
     with pytest.warns(UserWarning, match="zeros softened to 0.001"):
-        soft = PriorEstimator(template=TRUE_MODEL, on_zero="soften", soften=1e-3).fit(stack, allpts)
+        soft = PriorEstimator(features=stack, template=TRUE_MODEL, on_zero="soften", soften=1e-3).fit(allpts)
     assert soft.n_used_ == 507 and soft.likelihoods_["water"]["water"] == pytest.approx(1e-3)
-    assert np.isfinite(soft.log_density(wet)).all() and np.isfinite(soft.loglik_)
+    assert np.isfinite(soft.score_samples(wet)).all() and np.isfinite(soft.loglik_)
 
 
 def test_flexible_binned_road_term_follows_the_true_curve() -> None:
     stack = small_stack()
     edges = [0.0, 40.0, 80.0, 160.0, 320.0]
     pts = sample_points(TRUE_MODEL.evaluate(stack), stack.grid, 6000, np.random.default_rng(8))
-    est = PriorEstimator(template=TRUE_MODEL, flexible={"road_distance": edges}, smooth_sd=0.0).fit(stack, pts)
+    est = PriorEstimator(features=stack, template=TRUE_MODEL, flexible={"road_distance": edges}, smooth_sd=0.0).fit(pts)
     (t,) = [t for t in est.terms_ if t.feature == "road_distance"]
     assert t.form == "binned"
     # oracle: the true road factor averaged over each bin's dry area (the other factors are
@@ -228,11 +230,58 @@ def test_sklearn_estimator_protocol() -> None:
     assert twin.method == "naive" and est.method == "ml"
     stack = small_stack()
     with pytest.raises(ValueError, match="method"):
-        PriorEstimator(method="bayes").fit(stack, np.zeros((1, 2)))
+        PriorEstimator(features=stack, method="bayes").fit(np.zeros((1, 2)))
     with pytest.raises(ValueError, match="on_zero"):
-        PriorEstimator(on_zero="ignore").fit(stack, np.zeros((1, 2)))
+        PriorEstimator(features=stack, on_zero="ignore").fit(np.zeros((1, 2)))
     with pytest.raises(ValueError, match="no points left"):
-        PriorEstimator(template=TRUE_MODEL).fit(stack, np.array([[0.0, 0.0]]))
+        PriorEstimator(features=stack, template=TRUE_MODEL).fit(np.array([[0.0, 0.0]]))
+    with pytest.raises(NotFittedError):
+        PriorEstimator(features=stack, template=TRUE_MODEL).score_samples(np.zeros((1, 2)))
+    with pytest.raises(ValueError, match="no feature stack"):
+        PriorEstimator(template=TRUE_MODEL).fit(np.zeros((1, 2)))
+    assert clone(PriorEstimator(features=stack)).features is stack  # the data is shared, not copied
+
+
+_OFF_GRID = "X must be target points on the feature grid; the check's random X lies off it (no points left)"
+_NOT_XY = "X must be (N, 2) map coordinates in metres; the check passes another number of columns"
+SKLEARN_CHECKS_THAT_CANNOT_APPLY = {
+    **dict.fromkeys(
+        ["check_estimators_overwrite_params", "check_estimators_fit_returns_self", "check_readonly_memmap_input",
+         "check_fit_idempotent", "check_fit_check_is_fitted", "check_n_features_in", "check_positive_only_tag_during_fit"],
+        _OFF_GRID),
+    **dict.fromkeys(
+        ["check_fit_score_takes_y", "check_dont_overwrite_parameters", "check_n_features_in_after_fitting",
+         "check_estimators_dtypes", "check_complex_data", "check_dtype_object", "check_estimators_empty_data_messages",
+         "check_pipeline_consistency", "check_estimators_nan_inf", "check_estimators_pickle",
+         "check_f_contiguous_array_estimator", "check_methods_sample_order_invariance", "check_methods_subset_invariance",
+         "check_fit2d_1sample", "check_fit2d_1feature", "check_dict_unchanged", "check_fit2d_predict1d"],
+        _NOT_XY),
+    **dict.fromkeys(["check_estimator_sparse_tag", "check_estimator_sparse_array", "check_estimator_sparse_matrix"],
+                    "points are a dense (N, 2) array; check_points refuses sparse input with its own message"),
+}
+"""scikit-learn's estimator checks PriorEstimator fails by design, and why (docs/learn.md lists them)."""
+
+
+def test_sklearn_estimator_checks() -> None:
+    """Every check of scikit-learn's estimator contract that can apply to an estimator of map points
+    on one grid passes; the others are listed with the reason."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        check_estimator(PriorEstimator(features=small_stack(), template=TRUE_MODEL),
+                        expected_failed_checks=SKLEARN_CHECKS_THAT_CANNOT_APPLY)
+
+
+def test_grid_pass_is_cached_per_stack() -> None:
+    stack = small_stack()
+    pts = sample_points(TRUE_MODEL.evaluate(stack), stack.grid, 300, np.random.default_rng(2))
+    first = PriorEstimator(features=stack, template=TRUE_MODEL).fit(pts)
+    again = clone(first).set_params(method="naive").fit(pts[:200])
+    assert again.cell_stats_.area is first.cell_stats_.area  # the one pass, not redone
+    copy = FeatureStack(stack.grid, dict(stack.features))
+    other = PriorEstimator(features=copy, template=TRUE_MODEL).fit(pts)
+    assert other.cell_stats_.area is not first.cell_stats_.area
+    np.testing.assert_array_equal(other.cell_stats_.area, first.cell_stats_.area)
+    np.testing.assert_array_equal(other.theta_, first.theta_)
 
 
 def test_hybrid_finds_a_spatial_cluster_and_stays_flat_without_one() -> None:
@@ -245,14 +294,14 @@ def test_hybrid_finds_a_spatial_cluster_and_stays_flat_without_one() -> None:
     rng = np.random.default_rng(4)
     bumpy = TRUE_MODEL.evaluate(stack) * (0.2 + 5 * bump)
     pts = sample_points(bumpy, stack.grid, 2000, rng)
-    terrain = PriorEstimator(template=TRUE_MODEL).fit(stack, pts)
-    hybrid = PriorEstimator(template=TRUE_MODEL, spatial_bandwidth=120.0).fit(stack, pts)
+    terrain = PriorEstimator(features=stack, template=TRUE_MODEL).fit(pts)
+    hybrid = PriorEstimator(features=stack, template=TRUE_MODEL, spatial_bandwidth=120.0).fit(pts)
     p = hybrid.likelihoods_["spatial_kde"]
     assert p["gamma"] > 0.3 and 0 < p["alpha"] <= 1
     test = sample_points(bumpy, stack.grid, 2000, rng)
     assert hybrid.score(test) > terrain.score(test) + 0.05
     plain = sample_points(TRUE_MODEL.evaluate(stack), stack.grid, 2000, rng)
     fresh = sample_points(TRUE_MODEL.evaluate(stack), stack.grid, 2000, rng)
-    t2 = PriorEstimator(template=TRUE_MODEL).fit(stack, plain)
-    h2 = PriorEstimator(template=TRUE_MODEL, spatial_bandwidth=120.0).fit(stack, plain)
+    t2 = PriorEstimator(features=stack, template=TRUE_MODEL).fit(plain)
+    h2 = PriorEstimator(features=stack, template=TRUE_MODEL, spatial_bandwidth=120.0).fit(plain)
     assert abs(h2.score(fresh) - t2.score(fresh)) < 0.02

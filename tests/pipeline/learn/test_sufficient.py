@@ -21,8 +21,8 @@ from tests.pipeline.learn_synth import TRUE_MODEL, sample_points, small_stack
 
 
 def objective_for(stack, template, points, flexible=None):
-    est = PriorEstimator(template=template, flexible=flexible, penalty_sd=1e6, smooth_sd=0.0)
-    est.fit(stack, points)
+    est = PriorEstimator(features=stack, template=template, flexible=flexible, penalty_sd=1e6, smooth_sd=0.0)
+    est.fit(points)
     return est, Objective(est.cell_stats_, est.point_stats_, est.params_, list(range(len(est.terms_))), 1e6, 0.0)
 
 

@@ -31,7 +31,7 @@ def swellendam_fit(swellendam: Path, tmp_path_factory):
         stack = build_features(cfg, progress=False)
     pts = read_targets(swellendam / "training_data.gpkg", cfg.grid, layer="buildings")
     with pytest.warns(UserWarning, match="on structural zeros"):
-        est = PriorEstimator(template=cfg.model).fit(stack, pts)
+        est = PriorEstimator(features=stack, template=cfg.model).fit(pts)
     return cfg, stack, pts, est
 
 
@@ -54,7 +54,7 @@ def test_terrain_fit_beats_uniform_on_held_out_blocks(swellendam_fit) -> None:
     _, stack, pts, est = swellendam_fit
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        res = block_cv(stack, pts, est, n_folds=3, block_size=2000.0, models=("uniform", "terrain"), progress=False)
+        res = block_cv(pts, est, n_folds=3, block_size=2000.0, models=("uniform", "terrain"), progress=False)
     gains = res.gains()[:, 1]
     assert np.all(gains > 0.5), gains  # every held-out fold, not only on average
 
@@ -64,7 +64,7 @@ def test_hybrid_beats_uniform_naive_terrain_and_kde(swellendam_fit) -> None:
     _, stack, pts, est = swellendam_fit
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        res = block_cv(stack, pts, est, n_folds=5, block_size=2000.0, progress=False)
+        res = block_cv(pts, est, n_folds=5, block_size=2000.0, progress=False)
     s = res.summary()
     g = {m: v["pooled"] for m, v in s["gain_nats"].items()}
     assert g["hybrid"] > max(g["uniform"], g["naive"], g["terrain"], g["kde"]), g
