@@ -17,7 +17,8 @@ from pipeline.config.region import FeatureSpec, RegionConfig
 from pipeline.features import rasterize
 from pipeline.features.distance import distance_m
 from pipeline.features.slope import slope_classes, slope_deg
-from pipeline.features.stack import NODATA_CODE, Feature, FeatureStack
+from pipeline.features.stack import Feature, FeatureStack
+from pipeline.gis.grid import NODATA_CODE
 from pipeline.gis.layers import LayerError, VectorLayer, read_dem, read_raster, read_vector
 from pipeline.prior.likelihood import LikelihoodModel
 from pipeline.prior.terrain import PriorError, TerrainPrior

@@ -202,10 +202,9 @@ class TerrainPrior:
 
     def density_at(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Density per m^2 at map points (metres, grid CRS); zero off the grid."""
-        u, v = self.grid.to_pixel(x, y)
-        inside = (u >= 0) & (u < self.grid.width) & (v >= 0) & (v < self.grid.height)
-        out = np.zeros(np.shape(u), dtype=np.float64)
-        out[inside] = self.density[v[inside].astype(np.intp), u[inside].astype(np.intp)]
+        r, c, inside = self.grid.cell_index(x, y)
+        out = np.zeros(np.shape(inside), dtype=np.float64)
+        out[inside] = self.density[r[inside], c[inside]]
         return out
 
     def rect_sum(

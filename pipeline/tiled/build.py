@@ -51,10 +51,10 @@ from tqdm import tqdm
 from common.atomic import atomic_paths
 from common.dask import get_client
 from pipeline.build.region import build_features
-from pipeline.config.region import FeatureSpec, LayerSpec, RegionConfig
+from pipeline.config.region import FeatureSpec, RegionConfig
 from pipeline.features.stack import FeatureStack
 from pipeline.gis.grid import Grid
-from pipeline.gis.layers import LayerWarning
+from pipeline.gis.layers import LayerSpec, LayerWarning
 from pipeline.prior.likelihood import BinnedLikelihood, LikelihoodModel, RoadDistanceLikelihood
 from pipeline.prior.terrain import PriorError, density_table_rows, sat_paths
 

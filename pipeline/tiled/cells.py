@@ -24,8 +24,8 @@ from tqdm import tqdm
 
 from common.dask import get_client
 from pipeline.config.region import RegionConfig
-from pipeline.features.stack import NODATA_CODE, Feature, FeatureStack
-from pipeline.gis.grid import Grid
+from pipeline.features.stack import Feature, FeatureStack
+from pipeline.gis.grid import NODATA_CODE, Grid
 from pipeline.learn.estimator import make_terms
 from pipeline.learn.sufficient import CONTINUOUS_FORMS, CellStats, Term, cell_stats
 from pipeline.prior.likelihood import BinnedLikelihood, LikelihoodModel
