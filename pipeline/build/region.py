@@ -22,6 +22,7 @@ from pipeline.gis.grid import NODATA_CODE
 from pipeline.gis.layers import LayerError, VectorLayer, read_dem, read_raster, read_vector
 from pipeline.prior.likelihood import LikelihoodModel
 from pipeline.prior.terrain import PriorError, TerrainPrior
+from pipeline.prior.write import geotiff_profile
 
 
 class _Layers:
@@ -153,21 +154,16 @@ def write_features(stack: FeatureStack, out_dir: str | Path) -> list[Path]:
     """
     out_dir = Path(out_dir)
     finals = [out_dir / f"{f.name}.tif" for f in stack]
-    base = {
-        "driver": "GTiff", "height": stack.grid.height, "width": stack.grid.width, "count": 1,
-        "crs": stack.grid.crs, "transform": stack.grid.transform, "compress": "deflate",
-        "tiled": True, "blockxsize": 256, "blockysize": 256,
-    }
     with atomic_paths(*finals) as temps:
         for f, tmp in zip(stack, temps, strict=True):
             if f.kind == "categorical":
                 small = f.values.size == 0 or np.iinfo(np.int16).max >= f.values.max()
                 dtype = "int16" if small else "int32"
-                profile = base | {"dtype": dtype, "nodata": NODATA_CODE}
+                profile = geotiff_profile(stack.grid, dtype, nodata=NODATA_CODE)
                 tags = {"LABELS": json.dumps({str(k): v for k, v in f.labels.items()})}
                 data = f.values.astype(dtype)
             else:
-                profile = base | {"dtype": "float32", "nodata": float("nan")}
+                profile = geotiff_profile(stack.grid, "float32", nodata=float("nan"))
                 tags = {"UNITS": f.units}
                 data = f.values.astype(np.float32)
             with rasterio.open(tmp, "w", **profile) as dst:

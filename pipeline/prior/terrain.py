@@ -16,8 +16,8 @@ import numba as nb
 import numpy as np
 import rasterio
 
-from common.atomic import atomic_paths
 from pipeline.gis.grid import Grid
+from pipeline.prior.write import BLOCK, sat_paths, write_prior
 
 
 class PriorError(ValueError):
@@ -94,12 +94,6 @@ def density_table_rows(r, total, cell_area, above, above2, density, sat, sat2):
                 sat2[i, j + 1] = sat2[i - 1, j + 1] + row2
 
 
-def sat_paths(path: str | Path) -> tuple[Path, Path]:
-    """Where the summed-area tables of r and r^2 live beside a prior GeoTIFF."""
-    p = Path(path)
-    return p.with_suffix(".sat.npy"), p.with_suffix(".sat2.npy")
-
-
 class TerrainPrior:
     """A prior density r(x) per m^2 on a grid, zero outside it, integrating to 1 over the grid.
 
@@ -158,30 +152,11 @@ class TerrainPrior:
         return cls.from_array(np.ones(grid.shape), grid, {"uniform": True})
 
     def write(self, path: str | Path) -> Path:
-        """Write the GeoTIFF and its summed-area tables atomically; returns the GeoTIFF path."""
-        path = Path(path)
-        sat_p, sat2_p = sat_paths(path)
-        profile = {
-            "driver": "GTiff",
-            "height": self.grid.height,
-            "width": self.grid.width,
-            "count": 1,
-            "dtype": "float32",
-            "crs": self.grid.crs,
-            "transform": self.grid.transform,
-            "tiled": True,
-            "blockxsize": 256,
-            "blockysize": 256,
-            "compress": "deflate",
-        }
-        # Tables first, GeoTIFF last: a complete prior.tif implies complete tables.
-        with atomic_paths(sat_p, sat2_p, path) as (t_sat, t_sat2, t_tif):
-            np.save(t_sat, self.sat)
-            np.save(t_sat2, self.sat2)
-            with rasterio.open(t_tif, "w", **profile) as dst:
-                dst.write(self.density.astype(np.float32), 1)
-                dst.update_tags(MODEL=json.dumps(self.model), UNITS="probability density per square metre")
-        return path
+        """Write the GeoTIFF and its summed-area tables atomically (:func:`pipeline.prior.write.write_prior`);
+        returns the GeoTIFF path."""
+        rows = range(0, self.grid.height, BLOCK)
+        strips = ((self.density[r : r + BLOCK], self.sat[r + 1 : r + 1 + BLOCK], self.sat2[r + 1 : r + 1 + BLOCK]) for r in rows)
+        return write_prior(path, self.grid, self.model, strips)
 
     @classmethod
     def read(cls, path: str | Path) -> TerrainPrior:

@@ -2,7 +2,7 @@
 
 The Poisson-process fit sees the grid only through :class:`pipeline.learn.sufficient.CellStats` (area per
 combination of term levels, and the mean continuous value in each). Those add up over any
-partition of the grid, so each tile's features (:func:`pipeline.tiled.build.tile_features`) go through
+partition of the grid, so each tile's features (:func:`pipeline.tiled.tiles.tile_features`) go through
 :func:`pipeline.learn.sufficient.cell_stats` on a worker and the client merges the small tables.
 
 Terms need two grid-wide facts first — the category codes present and the range of each continuous
@@ -29,12 +29,12 @@ from pipeline.gis.grid import NODATA_CODE, Grid
 from pipeline.learn.estimator import make_terms
 from pipeline.learn.sufficient import CONTINUOUS_FORMS, CellStats, Term, cell_stats
 from pipeline.prior.likelihood import BinnedLikelihood, LikelihoodModel
-from pipeline.tiled.build import (
+from pipeline.tiled.tiles import tile_features
+from pipeline.tiled.windows import (
     DEFAULT_TILE,
     TiledBuildError,
     distance_caps,
     needed_features,
-    tile_features,
     tile_windows,
 )
 

@@ -3,7 +3,7 @@
 :meth:`pipeline.learn.estimator.PriorEstimator.fit_stats` needs the cell statistics (area per combination of
 term levels; :func:`pipeline.tiled.cells.tiled_cell_stats` adds them up over tiles) and each
 point's levels and values. The latter come from the tiles that hold points only: each such tile's
-features (:func:`pipeline.tiled.build.tile_features`) are sampled at the centres of its points' cells, so
+features (:func:`pipeline.tiled.tiles.tile_features`) are sampled at the centres of its points' cells, so
 a point reads the same cell it reads on the whole grid, and no process builds more than one tile.
 
 Example::
@@ -32,8 +32,9 @@ from pipeline.learn.sufficient import (
     point_stats,
 )
 from pipeline.prior.likelihood import LikelihoodModel
-from pipeline.tiled.build import DEFAULT_TILE, tile_features
 from pipeline.tiled.cells import learning_setup, tiled_cell_stats, tiled_terms
+from pipeline.tiled.tiles import tile_features
+from pipeline.tiled.windows import DEFAULT_TILE
 
 
 def _tile_points(config: RegionConfig, specs: dict, caps: dict, terms: tuple[Term, ...], win: Window,
@@ -46,7 +47,7 @@ def tiled_point_stats(
     progress: bool = True,
 ) -> PointStats:
     """:func:`pipeline.learn.sufficient.point_stats` of points (N, 2) (metres, the grid's CRS) on the region's
-    features, built only on the tiles (``tile`` cells a side, as in :func:`pipeline.tiled.build.tile_windows`)
+    features, built only on the tiles (``tile`` cells a side, as in :func:`pipeline.tiled.windows.tile_windows`)
     that hold points, on ``client`` (default: an in-process cluster). Off-grid points get no data."""
     terms = tuple(terms)
     pts = check_points(points)

@@ -17,8 +17,8 @@ from pipeline.features.stack import Feature, FeatureStack
 from pipeline.gis.grid import Grid
 from pipeline.learn.estimator import make_terms
 from pipeline.learn.sufficient import Term, cell_stats, with_range
-from pipeline.tiled.build import TiledBuildError
 from pipeline.tiled.cells import merge_cell_stats, tiled_cell_stats, tiled_terms
+from pipeline.tiled.windows import TiledBuildError
 from tests.dask_helpers import shared_client
 from tests.pipeline.tiled.test_build import region
 
