@@ -137,13 +137,31 @@ def build_prior(stack: FeatureStack, model: LikelihoodModel, provenance: dict | 
     return TerrainPrior.from_array(r, stack.grid, description)
 
 
-def build_region_prior(config: RegionConfig, model: LikelihoodModel | None = None, progress: bool = True) -> TerrainPrior:
-    """Features and prior of a region; ``model`` overrides the config's ``[likelihood.*]`` tables."""
+def region_model(config: RegionConfig, model: LikelihoodModel | None = None) -> LikelihoodModel:
+    """``model``, else the config's ``[likelihood.*]`` tables; PriorError when there are neither."""
     model = model or config.model
     if model is None:
         raise PriorError(f"{config.path}: no [likelihood.<feature>] tables and no model given")
+    return model
+
+
+def region_provenance(config: RegionConfig, model_path: str | Path | None = None) -> dict:
+    """What a prior records about its inputs: region name, config path and, when the tables came from
+    a file other than the config, that file's absolute path."""
+    provenance = {"region": config.name, "config": str(config.path)}
+    if model_path is not None:
+        provenance["model"] = str(Path(model_path).resolve())
+    return provenance
+
+
+def build_region_prior(
+    config: RegionConfig, model: LikelihoodModel | None = None, progress: bool = True, provenance: dict | None = None
+) -> TerrainPrior:
+    """Features and prior of a region; ``model`` overrides the config's ``[likelihood.*]`` tables;
+    ``provenance`` is stored with the model (default :func:`region_provenance`)."""
+    model = region_model(config, model)
     stack = build_features(config, progress)
-    return build_prior(stack, model, {"region": config.name, "config": str(config.path)})
+    return build_prior(stack, model, region_provenance(config) if provenance is None else provenance)
 
 
 def write_features(stack: FeatureStack, out_dir: str | Path) -> list[Path]:

@@ -45,6 +45,7 @@ from rasterio.windows import Window
 from tqdm import tqdm
 
 from common.dask import using_client
+from pipeline.build.region import region_model, region_provenance
 from pipeline.config.region import RegionConfig
 from pipeline.gis.grid import Grid
 from pipeline.prior.likelihood import LikelihoodModel
@@ -137,15 +138,13 @@ def build_prior_tiled(
 
     Returns a summary: path, shape, tiles, seconds of each pass, tile seconds per worker.
     """
-    model = model or config.model
-    if model is None:
-        raise PriorError(f"{config.path}: no [likelihood.<feature>] tables and no model given")
+    model = region_model(config, model)
     out = Path(out)
     specs = needed_features(config, model.terms)
     caps = distance_caps(config, model, specs)
     windows = tile_windows(config.grid, tile)
     description = model.to_dict()
-    description["provenance"] = provenance if provenance is not None else {"region": config.name, "config": str(config.path)}
+    description["provenance"] = region_provenance(config) if provenance is None else provenance
     t0 = time.perf_counter()
     with using_client(client) as client:
         out.parent.mkdir(parents=True, exist_ok=True)
