@@ -175,6 +175,36 @@ class TerrainPrior:
             raise PriorError(f"{path}: cannot read prior GeoTIFF: {exc}") from exc
         return cls(grid, density, np.load(sat_p, mmap_mode="r"), np.load(sat2_p, mmap_mode="r"), model)
 
+    def sample(
+        self, n: int, rng: np.random.Generator, region: tuple[float, float, float, float] | None = None
+    ) -> np.ndarray:
+        """``n`` i.i.d. points (n, 2) in metres (grid CRS) from r restricted to ``region`` ((xmin, ymin,
+        xmax, ymax) metres, cell-aligned; the whole grid when None): a cell by inverse CDF of the per-cell
+        masses, then a uniform point inside it. Draws ``rng.random(n)`` three times (cells, x, y)."""
+        grid = self.grid
+        c0, r0, c1, r1 = 0, 0, grid.width, grid.height
+        if region is not None:
+            u0, v1 = grid.to_pixel(region[0], region[1])
+            u1, v0 = grid.to_pixel(region[2], region[3])
+            px = np.array([u0, u1, v0, v1], dtype=np.float64)
+            c0, c1, r0, r1 = (int(k) for k in np.rint(px))
+            aligned = np.allclose(px, np.rint(px), atol=1e-6)
+            if not (aligned and 0 <= c0 < c1 <= grid.width and 0 <= r0 < r1 <= grid.height):
+                raise ValueError(f"TerrainPrior.sample: region {region} is not a cell-aligned window of the grid {grid.bounds}")
+        mass = np.asarray(self.density[r0:r1, c0:c1], dtype=np.float64).ravel()
+        cdf = np.cumsum(mass)
+        if not cdf.size or not cdf[-1] > 0:
+            raise ValueError(f"TerrainPrior.sample: the prior has no mass in region {region}")
+        cells = np.searchsorted(cdf, rng.random(n) * cdf[-1], side="right")
+        # Guard the u == total edge case (and zero-mass trailing cells) against float rounding.
+        cells = np.minimum(cells, np.flatnonzero(mass > 0)[-1])
+        w = c1 - c0
+        rows = r0 + cells // w
+        cols = c0 + cells % w
+        x = grid.transform.c + (cols + rng.random(n)) * grid.dx
+        y = grid.transform.f - (rows + rng.random(n)) * grid.dy
+        return np.stack([x, y], axis=1)
+
     def density_at(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Density per m^2 at map points (metres, grid CRS); zero off the grid."""
         r, c, inside = self.grid.cell_index(x, y)

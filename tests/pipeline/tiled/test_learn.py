@@ -19,7 +19,6 @@ from pipeline.prior.likelihood import LikelihoodModel
 from pipeline.tiled.learn import tiled_point_stats, tiled_stats
 from tests.dask_helpers import shared_client
 from tests.pipeline.gis_helpers import write_config
-from tests.pipeline.learn_synth import sample_points
 from tests.pipeline.tiled.test_build import region
 
 TILE = 96  # the 300 x 300 cut in 4 x 4 tiles, the last row and column ragged
@@ -37,7 +36,7 @@ def setup(tmp_path_factory):
         stack = build_features(config, progress=False)
     g = config.grid
     rng = np.random.default_rng(3)
-    drawn = sample_points(build_prior(stack, config.model).density, g, 600, rng)
+    drawn = build_prior(stack, config.model).sample(600, rng)
     x0, y0, x1, y1 = g.bounds
     edges = np.array([[x0 + TILE * g.dx, y1 - TILE * g.dy], [x0 + 2 * TILE * g.dx, y1 - 5.0], [x0, y0 + 1e-6],
                       [x0 + 3 * TILE * g.dx, y1 - 3 * TILE * g.dy], [x1 - 1e-6, y1]])
