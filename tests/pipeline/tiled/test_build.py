@@ -20,7 +20,8 @@ from pipeline.build.region import build_features, build_region_prior
 from pipeline.config.region import load_config
 from pipeline.gis.layers import LayerError
 from pipeline.prior.likelihood import LikelihoodModel
-from pipeline.prior.terrain import PriorError, TerrainPrior, sat_paths
+from pipeline.prior.terrain import PriorError, TerrainPrior
+from pipeline.prior.write import sat_paths
 from pipeline.tiled.build import build_prior_tiled
 from pipeline.tiled.store import NpyRows
 from pipeline.tiled.tiles import tile_features
