@@ -167,7 +167,7 @@ def identical_priors(a: Path, b: Path, rows: int = 1024) -> bool:
     import rasterio
     from rasterio.windows import Window
 
-    from pipeline.prior.terrain import sat_paths
+    from pipeline.prior.write import sat_paths
 
     for pa, pb in zip(sat_paths(a), sat_paths(b), strict=True):
         x, y = np.load(pa, mmap_mode="r"), np.load(pb, mmap_mode="r")

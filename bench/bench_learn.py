@@ -17,12 +17,14 @@ from __future__ import annotations
 
 import time
 import warnings
+from pathlib import Path
 
 import numpy as np
 from affine import Affine
 
 GOAL_FIT_S = 5.0
 N_POINTS = 20_000
+REGION = Path(__file__).resolve().parents[1] / "terrain_data" / "region.toml"
 
 
 def _timed(fn):
@@ -38,15 +40,12 @@ def bench_region() -> dict:
     from pipeline.learn.estimator import PriorEstimator
     from pipeline.learn.poisson import Objective
     from pipeline.prior.terrain import TerrainPrior
-    from tests.pipeline.gis_helpers import REGION_TOML
-    from tests.pipeline.learn_synth import sample_points
 
-    cfg = load_config(REGION_TOML)
+    cfg = load_config(REGION)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         stack = build_features(cfg, progress=False)
-    density = build_prior(stack, cfg.model).density
-    pts = sample_points(density, stack.grid, N_POINTS, np.random.default_rng(0))
+    pts = build_prior(stack, cfg.model).sample(N_POINTS, np.random.default_rng(0))
     # numba compile outside the timing, on a copy of the stack so the timed fit still runs the (per-stack cached) pass
     PriorEstimator(features=FeatureStack(stack.grid, dict(stack.features)), template=cfg.model).fit(pts[:100])
     wall, cpu, est = _timed(lambda: PriorEstimator(features=stack, template=cfg.model).fit(pts))

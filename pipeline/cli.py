@@ -10,7 +10,12 @@ import logging
 import sys
 from pathlib import Path
 
-from pipeline.build.region import build_features, build_prior, write_features
+from pipeline.build.region import (
+    build_features,
+    build_region_prior,
+    region_provenance,
+    write_features,
+)
 from pipeline.config.region import load_config
 from pipeline.prior.likelihood import LikelihoodModel
 from pipeline.prior.terrain import PriorError, TerrainPrior
@@ -25,12 +30,8 @@ def cmd_features(args: argparse.Namespace) -> None:
 
 def cmd_build(args: argparse.Namespace) -> None:
     config = load_config(args.region)
-    model = LikelihoodModel.read_toml(args.model) if args.model else config.model
-    if model is None:
-        raise PriorError(f"{config.path}: no [likelihood.<feature>] tables; add them or pass --model")
-    provenance = {"region": config.name, "config": str(config.path)}
-    if args.model:
-        provenance["model"] = str(Path(args.model).resolve())
+    model = LikelihoodModel.read_toml(args.model) if args.model else None
+    provenance = region_provenance(config, args.model)
     if args.tiled or args.scheduler:
         from common.dask import get_client  # dask loads only for tiled builds
         from pipeline.tiled.build import build_prior_tiled
@@ -39,8 +40,7 @@ def cmd_build(args: argparse.Namespace) -> None:
             s = build_prior_tiled(config, args.out, model, client, args.tile, provenance, progress=not args.quiet)
         print(f"wrote {args.out} ({s['shape'][0]} x {s['shape'][1]} cells in {s['n_tiles']} tiles, {s['total_seconds']:.1f} s)")
         return
-    stack = build_features(config, progress=not args.quiet)
-    prior = build_prior(stack, model, provenance)
+    prior = build_region_prior(config, model, not args.quiet, provenance)
     prior.write(args.out)
     print(f"wrote {args.out} ({prior.grid.height} x {prior.grid.width} cells of {prior.grid.dx:g} m)")
 
@@ -87,11 +87,19 @@ def make_parser() -> argparse.ArgumentParser:
 
 
 def cmd_learn(args: argparse.Namespace) -> None:
-    from pipeline.learn.run import learn_region  # scikit-learn and the fit load only for `learn`
+    if args.tiled or args.scheduler:
+        if args.hybrid_prior is not None:
+            raise ValueError("--hybrid-prior needs the whole grid (the KDE term); it cannot be used with --tiled / --scheduler")
+        from pipeline.tiled.learn import learn_region_tiled  # dask loads only for tiled learning
 
-    report = learn_region(args.region, args.targets, args.out, args.layer, args.x, args.y, args.targets_crs,
-                          cv=not args.no_cv, hybrid_prior=args.hybrid_prior, progress=not args.quiet,
-                          tiled=args.tiled, scheduler=args.scheduler, tile=args.tile)
+        report = learn_region_tiled(args.region, args.targets, args.out, args.layer, args.x, args.y, args.targets_crs,
+                                    scheduler=args.scheduler, tile=args.tile, progress=not args.quiet)
+    else:
+        # scikit-learn and the fit load only for `learn`
+        from pipeline.learn.run import learn_region
+
+        report = learn_region(args.region, args.targets, args.out, args.layer, args.x, args.y, args.targets_crs,
+                              cv=not args.no_cv, hybrid_prior=args.hybrid_prior, progress=not args.quiet)
     print(report.table())
     print("wrote " + ", ".join(str(p) for p in report.paths.values()))
 

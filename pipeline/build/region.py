@@ -17,10 +17,12 @@ from pipeline.config.region import FeatureSpec, RegionConfig
 from pipeline.features import rasterize
 from pipeline.features.distance import distance_m
 from pipeline.features.slope import slope_classes, slope_deg
-from pipeline.features.stack import NODATA_CODE, Feature, FeatureStack
+from pipeline.features.stack import Feature, FeatureStack
+from pipeline.gis.grid import NODATA_CODE
 from pipeline.gis.layers import LayerError, VectorLayer, read_dem, read_raster, read_vector
 from pipeline.prior.likelihood import LikelihoodModel
 from pipeline.prior.terrain import PriorError, TerrainPrior
+from pipeline.prior.write import geotiff_profile
 
 
 class _Layers:
@@ -135,13 +137,31 @@ def build_prior(stack: FeatureStack, model: LikelihoodModel, provenance: dict | 
     return TerrainPrior.from_array(r, stack.grid, description)
 
 
-def build_region_prior(config: RegionConfig, model: LikelihoodModel | None = None, progress: bool = True) -> TerrainPrior:
-    """Features and prior of a region; ``model`` overrides the config's ``[likelihood.*]`` tables."""
+def region_model(config: RegionConfig, model: LikelihoodModel | None = None) -> LikelihoodModel:
+    """``model``, else the config's ``[likelihood.*]`` tables; PriorError when there are neither."""
     model = model or config.model
     if model is None:
         raise PriorError(f"{config.path}: no [likelihood.<feature>] tables and no model given")
+    return model
+
+
+def region_provenance(config: RegionConfig, model_path: str | Path | None = None) -> dict:
+    """What a prior records about its inputs: region name, config path and, when the tables came from
+    a file other than the config, that file's absolute path."""
+    provenance = {"region": config.name, "config": str(config.path)}
+    if model_path is not None:
+        provenance["model"] = str(Path(model_path).resolve())
+    return provenance
+
+
+def build_region_prior(
+    config: RegionConfig, model: LikelihoodModel | None = None, progress: bool = True, provenance: dict | None = None
+) -> TerrainPrior:
+    """Features and prior of a region; ``model`` overrides the config's ``[likelihood.*]`` tables;
+    ``provenance`` is stored with the model (default :func:`region_provenance`)."""
+    model = region_model(config, model)
     stack = build_features(config, progress)
-    return build_prior(stack, model, {"region": config.name, "config": str(config.path)})
+    return build_prior(stack, model, region_provenance(config) if provenance is None else provenance)
 
 
 def write_features(stack: FeatureStack, out_dir: str | Path) -> list[Path]:
@@ -152,21 +172,16 @@ def write_features(stack: FeatureStack, out_dir: str | Path) -> list[Path]:
     """
     out_dir = Path(out_dir)
     finals = [out_dir / f"{f.name}.tif" for f in stack]
-    base = {
-        "driver": "GTiff", "height": stack.grid.height, "width": stack.grid.width, "count": 1,
-        "crs": stack.grid.crs, "transform": stack.grid.transform, "compress": "deflate",
-        "tiled": True, "blockxsize": 256, "blockysize": 256,
-    }
     with atomic_paths(*finals) as temps:
         for f, tmp in zip(stack, temps, strict=True):
             if f.kind == "categorical":
                 small = f.values.size == 0 or np.iinfo(np.int16).max >= f.values.max()
                 dtype = "int16" if small else "int32"
-                profile = base | {"dtype": dtype, "nodata": NODATA_CODE}
+                profile = geotiff_profile(stack.grid, dtype, nodata=NODATA_CODE)
                 tags = {"LABELS": json.dumps({str(k): v for k, v in f.labels.items()})}
                 data = f.values.astype(dtype)
             else:
-                profile = base | {"dtype": "float32", "nodata": float("nan")}
+                profile = geotiff_profile(stack.grid, "float32", nodata=float("nan"))
                 tags = {"UNITS": f.units}
                 data = f.values.astype(np.float32)
             with rasterio.open(tmp, "w", **profile) as dst:

@@ -35,13 +35,13 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
-from pyproj import CRS as ProjCRS
-from pyproj import Transformer
 from rasterio.crs import CRS
 
+from pipeline.gis.crs import transformer
 from pipeline.gis.grid import Grid, GridError
+from pipeline.gis.layers import LayerSpec
 from pipeline.gis.lidar import SUFFIXES as POINTCLOUD_SUFFIXES
 from pipeline.prior.likelihood import LikelihoodError, LikelihoodModel, read_toml
 
@@ -53,19 +53,6 @@ class ConfigError(ValueError):
 TOP_LEVEL_TABLES = {"region", "layers", "features", "likelihood", "meta", "learn"}
 """``[learn]`` is validated by pipeline.config.learn; the rest here."""
 RASTER_SUFFIXES = {".tif", ".tiff", ".vrt", ".img", ".asc"}
-
-
-@dataclass(frozen=True)
-class LayerSpec:
-    """One input layer: a vector layer, a raster band or a LiDAR point cloud."""
-
-    name: str
-    path: Path
-    kind: Literal["vector", "raster", "pointcloud"]
-    layer: str | None = None
-    where: str | None = None
-    restore_index: bool = False
-    band: int = 1
 
 
 @dataclass(frozen=True)
@@ -215,9 +202,7 @@ def _parse_grid(t: _Table) -> Grid:
         grid_crs = _parse_crs(t, "crs", crs_value)
         bounds_crs = _parse_crs(t, "bounds_crs", t.get("bounds_crs", str, crs_value))
     if bounds_crs != grid_crs:
-        tr = Transformer.from_crs(ProjCRS.from_user_input(bounds_crs.to_wkt()),
-                                  ProjCRS.from_user_input(grid_crs.to_wkt()), always_xy=True)
-        bounds = tr.transform_bounds(*bounds, densify_pts=21)
+        bounds = transformer(bounds_crs, grid_crs).transform_bounds(*bounds, densify_pts=21)
     try:
         return Grid.from_bounds(tuple(bounds), cell, grid_crs)
     except GridError as exc:

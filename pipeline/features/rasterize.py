@@ -10,8 +10,7 @@ import numpy as np
 import shapely
 from rasterio.features import rasterize
 
-from pipeline.features.stack import NODATA_CODE
-from pipeline.gis.grid import Grid
+from pipeline.gis.grid import NODATA_CODE, Grid
 
 
 def _buffered(geoms: np.ndarray, buffer_m: float) -> np.ndarray:

@@ -18,7 +18,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from pipeline.features.stack import NODATA_CODE
+from pipeline.gis.grid import NODATA_CODE
 
 
 @nb.njit(cache=True)

@@ -7,10 +7,7 @@ from typing import Literal
 
 import numpy as np
 
-from pipeline.gis.grid import Grid
-
-NODATA_CODE = -1
-"""Code of a categorical cell with no data (continuous features use NaN)."""
+from pipeline.gis.grid import NODATA_CODE, Grid
 
 _DENSE_CODE_RANGE = 1 << 20
 """Code ranges narrower than this are handled with dense look-up tables instead of sorting."""
@@ -85,10 +82,7 @@ class FeatureStack:
 
     def sample(self, x: np.ndarray, y: np.ndarray) -> dict[str, np.ndarray]:
         """Feature values at map points (metres); points off the grid get no data."""
-        u, v = self.grid.to_pixel(x, y)
-        inside = (u >= 0) & (u < self.grid.width) & (v >= 0) & (v < self.grid.height)
-        r = np.where(inside, v, 0).astype(np.intp)
-        c = np.where(inside, u, 0).astype(np.intp)
+        r, c, inside = self.grid.cell_index(x, y)
         out = {}
         for f in self:
             vals = f.values[r, c]

@@ -8,6 +8,9 @@ import numpy as np
 from affine import Affine
 from rasterio.crs import CRS
 
+NODATA_CODE = -1
+"""Code of a categorical cell with no data (continuous features use NaN)."""
+
 
 class GridError(ValueError):
     """A grid that cannot carry metric features (geographic CRS, bad bounds or cell size)."""

@@ -14,6 +14,7 @@ import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import pyogrio
@@ -22,15 +23,11 @@ import pyogrio.raw
 import rasterio
 import rasterio.errors
 import shapely
-from pyproj import CRS as ProjCRS
-from pyproj import Transformer
-from rasterio.crs import CRS
 from rasterio.enums import Resampling
 from rasterio.warp import reproject
 
-from pipeline.config.region import LayerSpec
-from pipeline.features.stack import NODATA_CODE
-from pipeline.gis.grid import Grid
+from pipeline.gis.crs import to_pyproj, transformer
+from pipeline.gis.grid import NODATA_CODE, Grid
 
 log = logging.getLogger(__name__)
 
@@ -41,6 +38,20 @@ class LayerError(ValueError):
 
 class LayerWarning(UserWarning):
     """An input layer that is empty or does not touch the grid."""
+
+
+@dataclass(frozen=True)
+class LayerSpec:
+    """How to read one input layer: a vector layer (``layer`` of a multi-layer file, optional OGR SQL
+    ``where``), a raster ``band``, or a LiDAR point cloud; ``path`` absolute or relative to the working folder."""
+
+    name: str
+    path: Path
+    kind: Literal["vector", "raster", "pointcloud"]
+    layer: str | None = None
+    where: str | None = None
+    restore_index: bool = False
+    band: int = 1
 
 
 @dataclass(frozen=True)
@@ -90,10 +101,6 @@ def _stale_index_hint(spec: LayerSpec, exc: Exception) -> str:
             f"in [layers.{spec.name}] to restore it on a temporary copy (the input is not modified)"
         )
     return f"{_where(spec)}: cannot read: {msg}"
-
-
-def _transformer(src: CRS | ProjCRS, dst: CRS) -> Transformer:
-    return Transformer.from_crs(ProjCRS.from_user_input(src), ProjCRS.from_user_input(dst.to_wkt()), always_xy=True)
 
 
 def read_vector(spec: LayerSpec, grid: Grid, columns: list[str] | None = None) -> VectorLayer:
@@ -146,9 +153,9 @@ def read_vector(spec: LayerSpec, grid: Grid, columns: list[str] | None = None) -
     if n_repaired:
         geoms[invalid] = shapely.make_valid(geoms[invalid])
         log.warning("%s: repaired %d invalid geometries with make_valid", _where(spec), n_repaired)
-    src_crs = ProjCRS.from_user_input(info["crs"])
-    if not src_crs.equals(ProjCRS.from_user_input(grid.crs.to_wkt())):
-        tr = _transformer(src_crs, grid.crs)
+    src_crs = to_pyproj(info["crs"])
+    if not src_crs.equals(to_pyproj(grid.crs)):
+        tr = transformer(src_crs, grid.crs)
         geoms = shapely.transform(geoms, lambda xy: np.column_stack(tr.transform(xy[:, 0], xy[:, 1])))
     if geoms.size == 0:
         warnings.warn(f"{_where(spec)}: layer is empty" + (f" after where = {spec.where!r}" if spec.where else ""),

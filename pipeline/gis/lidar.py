@@ -85,9 +85,8 @@ def read_point_cloud(path: str | Path) -> np.ndarray:
 
 def _cells(points: np.ndarray, grid: Grid) -> tuple[np.ndarray, np.ndarray]:
     """Flat cell index of each point inside the grid, and the mask of those points."""
-    u, v = grid.to_pixel(points[:, 0], points[:, 1])
-    inside = (u >= 0) & (u < grid.width) & (v >= 0) & (v < grid.height)
-    return v[inside].astype(np.intp) * grid.width + u[inside].astype(np.intp), inside
+    r, c, inside = grid.cell_index(points[:, 0], points[:, 1])
+    return r[inside] * grid.width + c[inside], inside
 
 
 def _fill_gaps(values: np.ndarray, known: np.ndarray) -> np.ndarray:

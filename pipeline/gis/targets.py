@@ -12,12 +12,10 @@ from pathlib import Path
 
 import numpy as np
 import shapely
-from pyproj import CRS as ProjCRS
-from pyproj import Transformer
 
-from pipeline.config.region import LayerSpec
+from pipeline.gis.crs import transformer
 from pipeline.gis.grid import Grid
-from pipeline.gis.layers import read_vector
+from pipeline.gis.layers import LayerSpec, read_vector
 
 
 def read_targets(
@@ -52,6 +50,6 @@ def _read_csv(path: Path, grid: Grid, x: str, y: str, crs: str | None) -> np.nda
     if bad.size:
         raise ValueError(f"{path}: non-numeric or missing {x}/{y} on data rows {(bad + 1)[:10].tolist()}")
     if crs is not None:
-        tr = Transformer.from_crs(ProjCRS.from_user_input(crs), ProjCRS.from_user_input(grid.crs.to_wkt()), always_xy=True)
+        tr = transformer(crs, grid.crs)
         pts = np.column_stack(tr.transform(pts[:, 0], pts[:, 1]))
     return pts

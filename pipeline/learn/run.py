@@ -19,6 +19,7 @@ from sklearn.base import clone
 from common.atomic import atomic_paths
 from pipeline.build.region import build_features
 from pipeline.config.learn import LearnConfig, load_learn_config
+from pipeline.config.region import RegionConfig
 from pipeline.gis.targets import read_targets
 from pipeline.learn.estimator import SPATIAL, PriorEstimator
 from pipeline.learn.evaluate import CVResult, block_cv, default_bandwidths
@@ -136,6 +137,23 @@ def diagnostics(report: LearnReport) -> dict:
     return _jsonable(out)
 
 
+def prepare_learning(
+    region: str | Path, targets: str | Path, layer: str | None = None, x: str = "x", y: str = "y",
+    targets_crs: str | None = None,
+) -> tuple[RegionConfig, LearnConfig, np.ndarray, PriorEstimator]:
+    """The region and learn configs, the target points (metres, grid CRS) and the unfitted estimator
+    they describe: what every learning path (in memory or tiled) starts from."""
+    config, lc = load_learn_config(region)
+    if config.model is None and lc.features is None:
+        raise ValueError(f"{config.path}: no [likelihood.*] template and no learn.features; nothing says what to fit")
+    pts = read_targets(targets, config.grid, layer, x, y, targets_crs)
+    est = PriorEstimator(
+        template=config.model, feature_names=lc.features, penalty_sd=lc.penalty_sd, smooth_sd=lc.smooth_sd,
+        on_zero=lc.on_zero, soften=lc.soften, flexible=lc.flexible or None, bin_width=lc.bin_width,
+    )
+    return config, lc, pts, est
+
+
 def learn_region(
     region: str | Path,
     targets: str | Path,
@@ -147,30 +165,11 @@ def learn_region(
     cv: bool = True,
     hybrid_prior: str | Path | None = None,
     progress: bool = True,
-    tiled: bool = False,
-    scheduler: str | None = None,
-    tile: int = 1024,
 ) -> LearnReport:
     """Fit, evaluate and write (see the module doc). ``hybrid_prior``: also write the hybrid
-    prior GeoTIFF there (the spatial term cannot be expressed as a likelihood table).
-
-    ``tiled`` (implied by ``scheduler``, a Dask scheduler address): the statistics are computed tile
-    by tile (``tile`` cells a side) on Dask, so the grid is never held whole; the ML and naive fits
-    are the same, but the cross-validation and the hybrid, which need the whole grid, are skipped.
-    """
-    config, lc = load_learn_config(region)
-    if config.model is None and lc.features is None:
-        raise ValueError(f"{config.path}: no [likelihood.*] template and no learn.features; nothing says what to fit")
-    tiled = tiled or scheduler is not None
-    if tiled and hybrid_prior is not None:
-        raise ValueError("--hybrid-prior needs the whole grid (the KDE term); it cannot be used with --tiled / --scheduler")
-    pts = read_targets(targets, config.grid, layer, x, y, targets_crs)
-    est = PriorEstimator(
-        template=config.model, feature_names=lc.features, penalty_sd=lc.penalty_sd, smooth_sd=lc.smooth_sd,
-        on_zero=lc.on_zero, soften=lc.soften, flexible=lc.flexible or None, bin_width=lc.bin_width,
-    )
-    if tiled:
-        return _learn_tiled(config, lc, est, pts, targets, out, scheduler, tile, cv, progress)
+    prior GeoTIFF there (the spatial term cannot be expressed as a likelihood table). Grids larger
+    than memory: :func:`pipeline.tiled.learn.learn_region_tiled`."""
+    config, lc, pts, est = prepare_learning(region, targets, layer, x, y, targets_crs)
     stack = build_features(config, progress)
     est.set_params(features=stack).fit(pts)
     naive = clone(est).set_params(method="naive").fit(pts)
@@ -186,18 +185,19 @@ def learn_region(
         models = ("uniform", "naive", "terrain", "kde", "hybrid") if lc.hybrid else ("uniform", "naive", "terrain", "kde")
         result = block_cv(pts, est, lc.folds, lc.block_size_m,
                           np.asarray(lc.bandwidths_m) if lc.bandwidths_m else None, models, progress)
-    report = _write(LearnReport(est, naive, hyb, result, _paths(out), lc), targets)
+    report = write_report(LearnReport(est, naive, hyb, result, report_paths(out), lc), targets)
     if hybrid_prior is not None and hyb is not None:
         report.paths["hybrid_prior"] = hyb.prior_.write(hybrid_prior)
     return report
 
 
-def _paths(out: str | Path) -> dict[str, Path]:
+def report_paths(out: str | Path) -> dict[str, Path]:
+    """Where a model written to ``out`` puts its diagnostics JSON and its fit plot."""
     out = Path(out)
     return {"model": out, "diagnostics": out.with_suffix(".diagnostics.json"), "plot": out.with_suffix(".fit.png")}
 
 
-def _write(report: LearnReport, targets: str | Path) -> LearnReport:
+def write_report(report: LearnReport, targets: str | Path) -> LearnReport:
     """The model TOML, diagnostics JSON and fit plot of a finished report."""
     est, paths = report.estimator, report.paths
     if report.cv is not None:
@@ -209,20 +209,3 @@ def _write(report: LearnReport, targets: str | Path) -> LearnReport:
         tmp.write_text(json.dumps(diagnostics(report), indent=1, allow_nan=False))
     plot_fit(est, paths["plot"])
     return report
-
-
-def _learn_tiled(config, lc: LearnConfig, est: PriorEstimator, pts: np.ndarray, targets, out, scheduler: str | None,
-                 tile: int, cv: bool, progress: bool) -> LearnReport:
-    """The tiled path of :func:`learn_region`: statistics per tile on Dask, then the same fits."""
-    from common.dask import get_client
-    from pipeline.tiled.learn import tiled_stats  # dask loads only for tiled learning
-
-    skipped = [what for what, on in (("the spatial block cross-validation", cv), ("the hybrid fit", lc.hybrid)) if on]
-    if skipped:
-        log.info("tiled learning: skipping %s (they need the whole grid)", " and ".join(skipped))
-    with get_client(scheduler) as client:
-        cells, points = tiled_stats(config, est, pts, client, tile, progress)
-    est.fit_stats(cells, points)
-    naive = clone(est).set_params(method="naive").fit_stats(cells, points)
-    est.model_.meta["learned"]["tiled"] = {"tile_cells": tile, "scheduler": scheduler or "local"}
-    return _write(LearnReport(est, naive, None, None, _paths(out), lc), targets)

@@ -17,7 +17,8 @@ from typing import Literal
 
 import numpy as np
 
-from pipeline.features.stack import NODATA_CODE, FeatureStack
+from pipeline.features.stack import FeatureStack
+from pipeline.gis.grid import NODATA_CODE
 
 TermForm = Literal["categorical", "binned", "road", "kde"]
 DISCRETE_FORMS = ("categorical", "binned")

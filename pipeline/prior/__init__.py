@@ -1,0 +1,25 @@
+"""The prior the tracker reads: likelihood tables, the normalised density with its summed-area tables, its files."""
+
+from common.exports import lazy_exports
+
+_EXPORTS = {
+    "BinnedLikelihood": "likelihood",
+    "CategoricalLikelihood": "likelihood",
+    "Likelihood": "likelihood",
+    "LikelihoodError": "likelihood",
+    "LikelihoodModel": "likelihood",
+    "RoadDistanceLikelihood": "likelihood",
+    "likelihood_from_dict": "likelihood",
+    "road_likelihood": "likelihood",
+    "PriorError": "terrain",
+    "TerrainPrior": "terrain",
+    "density_table_rows": "terrain",
+    "sat_integral": "terrain",
+    "sat_rect": "terrain",
+    "geotiff_profile": "write",
+    "prior_tags": "write",
+    "sat_paths": "write",
+    "write_prior": "write",
+}
+__all__ = sorted(_EXPORTS)
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

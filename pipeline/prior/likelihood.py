@@ -29,7 +29,8 @@ import numpy as np
 import tomli_w
 
 from common.atomic import atomic_paths
-from pipeline.features.stack import _DENSE_CODE_RANGE, NODATA_CODE, Feature, FeatureStack
+from pipeline.features.stack import _DENSE_CODE_RANGE, Feature, FeatureStack
+from pipeline.gis.grid import NODATA_CODE
 
 
 class LikelihoodError(ValueError):

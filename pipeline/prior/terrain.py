@@ -16,8 +16,8 @@ import numba as nb
 import numpy as np
 import rasterio
 
-from common.atomic import atomic_paths
 from pipeline.gis.grid import Grid
+from pipeline.prior.write import BLOCK, sat_paths, write_prior
 
 
 class PriorError(ValueError):
@@ -94,12 +94,6 @@ def density_table_rows(r, total, cell_area, above, above2, density, sat, sat2):
                 sat2[i, j + 1] = sat2[i - 1, j + 1] + row2
 
 
-def sat_paths(path: str | Path) -> tuple[Path, Path]:
-    """Where the summed-area tables of r and r^2 live beside a prior GeoTIFF."""
-    p = Path(path)
-    return p.with_suffix(".sat.npy"), p.with_suffix(".sat2.npy")
-
-
 class TerrainPrior:
     """A prior density r(x) per m^2 on a grid, zero outside it, integrating to 1 over the grid.
 
@@ -158,30 +152,11 @@ class TerrainPrior:
         return cls.from_array(np.ones(grid.shape), grid, {"uniform": True})
 
     def write(self, path: str | Path) -> Path:
-        """Write the GeoTIFF and its summed-area tables atomically; returns the GeoTIFF path."""
-        path = Path(path)
-        sat_p, sat2_p = sat_paths(path)
-        profile = {
-            "driver": "GTiff",
-            "height": self.grid.height,
-            "width": self.grid.width,
-            "count": 1,
-            "dtype": "float32",
-            "crs": self.grid.crs,
-            "transform": self.grid.transform,
-            "tiled": True,
-            "blockxsize": 256,
-            "blockysize": 256,
-            "compress": "deflate",
-        }
-        # Tables first, GeoTIFF last: a complete prior.tif implies complete tables.
-        with atomic_paths(sat_p, sat2_p, path) as (t_sat, t_sat2, t_tif):
-            np.save(t_sat, self.sat)
-            np.save(t_sat2, self.sat2)
-            with rasterio.open(t_tif, "w", **profile) as dst:
-                dst.write(self.density.astype(np.float32), 1)
-                dst.update_tags(MODEL=json.dumps(self.model), UNITS="probability density per square metre")
-        return path
+        """Write the GeoTIFF and its summed-area tables atomically (:func:`pipeline.prior.write.write_prior`);
+        returns the GeoTIFF path."""
+        rows = range(0, self.grid.height, BLOCK)
+        strips = ((self.density[r : r + BLOCK], self.sat[r + 1 : r + 1 + BLOCK], self.sat2[r + 1 : r + 1 + BLOCK]) for r in rows)
+        return write_prior(path, self.grid, self.model, strips)
 
     @classmethod
     def read(cls, path: str | Path) -> TerrainPrior:
@@ -200,12 +175,41 @@ class TerrainPrior:
             raise PriorError(f"{path}: cannot read prior GeoTIFF: {exc}") from exc
         return cls(grid, density, np.load(sat_p, mmap_mode="r"), np.load(sat2_p, mmap_mode="r"), model)
 
+    def sample(
+        self, n: int, rng: np.random.Generator, region: tuple[float, float, float, float] | None = None
+    ) -> np.ndarray:
+        """``n`` i.i.d. points (n, 2) in metres (grid CRS) from r restricted to ``region`` ((xmin, ymin,
+        xmax, ymax) metres, cell-aligned; the whole grid when None): a cell by inverse CDF of the per-cell
+        masses, then a uniform point inside it. Draws ``rng.random(n)`` three times (cells, x, y)."""
+        grid = self.grid
+        c0, r0, c1, r1 = 0, 0, grid.width, grid.height
+        if region is not None:
+            u0, v1 = grid.to_pixel(region[0], region[1])
+            u1, v0 = grid.to_pixel(region[2], region[3])
+            px = np.array([u0, u1, v0, v1], dtype=np.float64)
+            c0, c1, r0, r1 = (int(k) for k in np.rint(px))
+            aligned = np.allclose(px, np.rint(px), atol=1e-6)
+            if not (aligned and 0 <= c0 < c1 <= grid.width and 0 <= r0 < r1 <= grid.height):
+                raise ValueError(f"TerrainPrior.sample: region {region} is not a cell-aligned window of the grid {grid.bounds}")
+        mass = np.asarray(self.density[r0:r1, c0:c1], dtype=np.float64).ravel()
+        cdf = np.cumsum(mass)
+        if not cdf.size or not cdf[-1] > 0:
+            raise ValueError(f"TerrainPrior.sample: the prior has no mass in region {region}")
+        cells = np.searchsorted(cdf, rng.random(n) * cdf[-1], side="right")
+        # Guard the u == total edge case (and zero-mass trailing cells) against float rounding.
+        cells = np.minimum(cells, np.flatnonzero(mass > 0)[-1])
+        w = c1 - c0
+        rows = r0 + cells // w
+        cols = c0 + cells % w
+        x = grid.transform.c + (cols + rng.random(n)) * grid.dx
+        y = grid.transform.f - (rows + rng.random(n)) * grid.dy
+        return np.stack([x, y], axis=1)
+
     def density_at(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Density per m^2 at map points (metres, grid CRS); zero off the grid."""
-        u, v = self.grid.to_pixel(x, y)
-        inside = (u >= 0) & (u < self.grid.width) & (v >= 0) & (v < self.grid.height)
-        out = np.zeros(np.shape(u), dtype=np.float64)
-        out[inside] = self.density[v[inside].astype(np.intp), u[inside].astype(np.intp)]
+        r, c, inside = self.grid.cell_index(x, y)
+        out = np.zeros(np.shape(inside), dtype=np.float64)
+        out[inside] = self.density[r[inside], c[inside]]
         return out
 
     def rect_sum(

@@ -4,7 +4,7 @@
 
 - **cell statistics** (:class:`pipeline.learn.sufficient.CellStats`: area per combination of term
   levels, and the mean continuous value in each). They add up over any partition of the grid, so
-  each tile's features (:func:`pipeline.tiled.build.tile_features`) go through
+  each tile's features (:func:`pipeline.tiled.tiles.tile_features`) go through
   :func:`pipeline.learn.sufficient.cell_stats` on a worker and the client merges the small tables
   (:func:`tiled_cell_stats`, :func:`merge_cell_stats`). Equality with
   ``cell_stats(build_features(config), terms)``: the same combinations in the same order, areas
@@ -28,16 +28,21 @@ Example::
 
 from __future__ import annotations
 
+import logging
+from pathlib import Path
+
 import numpy as np
 from distributed import Client, as_completed
 from rasterio.windows import Window
+from sklearn.base import clone
 from tqdm import tqdm
 
-from common.dask import using_client
+from common.dask import get_client, using_client
 from pipeline.config.region import RegionConfig
-from pipeline.features.stack import NODATA_CODE, Feature, FeatureStack
-from pipeline.gis.grid import Grid
+from pipeline.features.stack import Feature, FeatureStack
+from pipeline.gis.grid import NODATA_CODE, Grid
 from pipeline.learn.estimator import PriorEstimator, make_terms
+from pipeline.learn.run import LearnReport, prepare_learning, report_paths, write_report
 from pipeline.learn.sufficient import (
     CONTINUOUS_FORMS,
     NODATA_INDEX,
@@ -49,14 +54,16 @@ from pipeline.learn.sufficient import (
     point_stats,
 )
 from pipeline.prior.likelihood import BinnedLikelihood, LikelihoodModel
-from pipeline.tiled.build import (
+from pipeline.tiled.tiles import tile_features
+from pipeline.tiled.windows import (
     DEFAULT_TILE,
     TiledBuildError,
     distance_caps,
     needed_features,
-    tile_features,
     tile_windows,
 )
+
+log = logging.getLogger(__name__)
 
 
 def learning_setup(config: RegionConfig, names) -> tuple[dict, dict]:
@@ -218,7 +225,7 @@ def tiled_point_stats(
     progress: bool = True,
 ) -> PointStats:
     """:func:`pipeline.learn.sufficient.point_stats` of points (N, 2) (metres, the grid's CRS) on the region's
-    features, built only on the tiles (``tile`` cells a side, as in :func:`pipeline.tiled.build.tile_windows`)
+    features, built only on the tiles (``tile`` cells a side, as in :func:`pipeline.tiled.windows.tile_windows`)
     that hold points, on ``client`` (default: an in-process cluster). Off-grid points get no data."""
     terms = tuple(terms)
     pts = check_points(points)
@@ -278,3 +285,21 @@ def tiled_stats(
         cells = tiled_cell_stats(config, terms, c, tile, progress)
         pstats = tiled_point_stats(config, terms, points, c, tile, progress)
     return cells, pstats
+
+
+def learn_region_tiled(
+    region: str | Path, targets: str | Path, out: str | Path, layer: str | None = None, x: str = "x", y: str = "y",
+    targets_crs: str | None = None, scheduler: str | None = None, tile: int = DEFAULT_TILE, progress: bool = True,
+) -> LearnReport:
+    """:func:`pipeline.learn.run.learn_region` on a grid larger than memory: the statistics per tile
+    (``tile`` cells a side) on Dask (``scheduler`` address, or a local in-process cluster), then the same ML
+    and naive fits. The spatial block cross-validation and the hybrid need the whole grid and are skipped."""
+    config, lc, pts, est = prepare_learning(region, targets, layer, x, y, targets_crs)
+    skipped = ["the spatial block cross-validation"] + (["the hybrid fit"] if lc.hybrid else [])
+    log.info("tiled learning: skipping %s (they need the whole grid)", " and ".join(skipped))
+    with get_client(scheduler) as client:
+        cells, points = tiled_stats(config, est, pts, client, tile, progress)
+    est.fit_stats(cells, points)
+    naive = clone(est).set_params(method="naive").fit_stats(cells, points)
+    est.model_.meta["learned"]["tiled"] = {"tile_cells": tile, "scheduler": scheduler or "local"}
+    return write_report(LearnReport(est, naive, None, None, report_paths(out), lc), targets)

@@ -1,4 +1,4 @@
-"""Small synthetic feature stacks and exact samplers for the learn tests."""
+"""Small synthetic feature stacks and the true model for the learn tests (points: ``TerrainPrior.sample``)."""
 
 from __future__ import annotations
 
@@ -36,13 +36,3 @@ TRUE_MODEL = LikelihoodModel(
         "road_distance": RoadDistanceLikelihood(rmd=80.0, mv=0.15),
     }
 )
-
-
-def sample_points(density: np.ndarray, grid: Grid, n: int, rng: np.random.Generator) -> np.ndarray:
-    """Exact draws from a piecewise-constant density on the grid: a cell by its mass, then uniform in it."""
-    p = density.ravel() / density.sum()
-    idx = rng.choice(p.size, size=n, p=p)
-    r, c = np.divmod(idx, grid.width)
-    x = grid.transform.c + (c + rng.random(n)) * grid.dx
-    y = grid.transform.f - (r + rng.random(n)) * grid.dy
-    return np.column_stack([x, y])

@@ -18,7 +18,6 @@ from pipeline.config.region import ConfigError
 from pipeline.prior.likelihood import LikelihoodModel
 from pipeline.prior.terrain import TerrainPrior
 from tests.pipeline.gis_helpers import REGION_TOML, write_config, write_vector
-from tests.pipeline.learn_synth import sample_points
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -42,7 +41,7 @@ def targets(tmp_path_factory):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         stack = build_features(region, progress=False)
-    pts = sample_points(build_prior(stack, region.model).density, region.grid, 1200, np.random.default_rng(0))
+    pts = build_prior(stack, region.model).sample(1200, np.random.default_rng(0))
     csv = tmp / "targets.csv"
     np.savetxt(csv, pts, delimiter=",", header="x,y", comments="")
     squares = [shapely.box(x - 2, y - 2, x + 2, y + 2) for x, y in pts[:300]]

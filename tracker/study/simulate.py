@@ -116,34 +116,6 @@ def central_windows(prior: TerrainPrior, region_m: float | None, keep_fraction: 
     return region, (cx - kx, cy - ky, cx + kx, cy + ky)
 
 
-def sample_targets(prior: TerrainPrior, n: int, rng: np.random.Generator, region: Bounds | None = None) -> np.ndarray:
-    """``n`` i.i.d. points (n, 2) from r restricted to ``region`` (cell-aligned bounds; whole grid when None):
-    a cell by inverse CDF of the per-cell masses, then a uniform point inside it."""
-    grid = prior.grid
-    c0, r0, c1, r1 = 0, 0, grid.width, grid.height
-    if region is not None:
-        u0, v1 = grid.to_pixel(region[0], region[1])
-        u1, v0 = grid.to_pixel(region[2], region[3])
-        px = np.array([u0, u1, v0, v1], dtype=np.float64)
-        c0, c1, r0, r1 = (int(k) for k in np.rint(px))
-        aligned = np.allclose(px, np.rint(px), atol=1e-6)
-        if not (aligned and 0 <= c0 < c1 <= grid.width and 0 <= r0 < r1 <= grid.height):
-            raise ValueError(f"sample_targets: region {region} is not a cell-aligned window of the grid {grid.bounds}")
-    mass = np.asarray(prior.density[r0:r1, c0:c1], dtype=np.float64).ravel()
-    cdf = np.cumsum(mass)
-    if not cdf.size or not cdf[-1] > 0:
-        raise ValueError(f"sample_targets: the prior has no mass in region {region}")
-    cells = np.searchsorted(cdf, rng.random(n) * cdf[-1], side="right")
-    # Guard the u == total edge case (and zero-mass trailing cells) against float rounding.
-    cells = np.minimum(cells, np.flatnonzero(mass > 0)[-1])
-    w = c1 - c0
-    rows = r0 + cells // w
-    cols = c0 + cells % w
-    x = grid.transform.c + (cols + rng.random(n)) * grid.dx
-    y = grid.transform.f - (rows + rng.random(n)) * grid.dy
-    return np.stack([x, y], axis=1)
-
-
 def simulate(
     prior: TerrainPrior,
     seed: int,
@@ -160,7 +132,7 @@ def simulate(
     sensor = sensor or AirborneSensor()
     rng = np.random.default_rng(seed)
     region, keep = central_windows(prior, region_m, keep_fraction)
-    drawn = sample_targets(prior, n_targets, rng, region)
+    drawn = prior.sample(n_targets, rng, region)
     inside = (
         (drawn[:, 0] >= keep[0]) & (drawn[:, 0] < keep[2]) & (drawn[:, 1] >= keep[1]) & (drawn[:, 1] < keep[3])
     )

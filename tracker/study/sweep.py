@@ -16,7 +16,7 @@ import pandas as pd
 from distributed import Client, as_completed
 from tqdm.auto import tqdm
 
-from common.dask import get_client
+from common.dask import using_client
 from pipeline.prior.terrain import TerrainPrior
 from tracker.study.experiment import ExperimentConfig, run_dataset, summarise, write_outputs
 
@@ -33,18 +33,13 @@ def run_experiment_dask(
 ) -> pd.DataFrame:
     """All data sets, variants and τ values on ``client`` (default: an in-process cluster); the same
     long table as :func:`tracker.study.experiment.run_experiment` (rows sorted by seed, variant, τ)."""
-    own = client is None
-    client = client or get_client(None)
-    try:
+    with using_client(client) as client:
         client.run(_one_numba_thread)
         seeds = config.seeds
         futures = client.map(run_dataset, [str(prior_path)] * len(seeds), seeds, config=config, pure=False)
         rows: list[dict] = []
         for fut in tqdm(as_completed(futures), total=len(futures), desc="data sets", unit="set", disable=not progress):
             rows.extend(fut.result())
-    finally:
-        if own:
-            client.close()
     return pd.DataFrame(rows).sort_values(["seed", "variant", "tau"], kind="stable").reset_index(drop=True)
 
 

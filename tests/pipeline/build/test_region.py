@@ -14,8 +14,8 @@ from affine import Affine
 from pipeline.build import region as build
 from pipeline.build.region import build_features, build_prior, write_features
 from pipeline.config.region import load_config
-from pipeline.features.stack import NODATA_CODE, Feature, FeatureStack
-from pipeline.gis.grid import Grid
+from pipeline.features.stack import Feature, FeatureStack
+from pipeline.gis.grid import NODATA_CODE, Grid
 from pipeline.gis.layers import LayerError
 from pipeline.prior.likelihood import LikelihoodError, LikelihoodModel
 from pipeline.prior.terrain import PriorError

@@ -9,8 +9,7 @@ from hypothesis import assume, example, given, settings
 from hypothesis import strategies as st
 
 from pipeline.features import rasterize
-from pipeline.features.stack import NODATA_CODE
-from pipeline.gis.grid import Grid
+from pipeline.gis.grid import NODATA_CODE, Grid
 from tests.pipeline.gis_helpers import cell_boxes
 
 # non-square cells, 20 m wide and 25 m tall, so row/column mix-ups show

@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pipeline.features.slope import slope_classes, slope_deg
-from pipeline.features.stack import NODATA_CODE
+from pipeline.gis.grid import NODATA_CODE
 
 
 def centres(h: int, w: int, dx: float, dy: float) -> tuple[np.ndarray, np.ndarray]:

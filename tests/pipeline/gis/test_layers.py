@@ -11,10 +11,15 @@ import shapely
 from affine import Affine
 from pyproj import Transformer
 
-from pipeline.config.region import LayerSpec
-from pipeline.features.stack import NODATA_CODE
-from pipeline.gis.grid import Grid
-from pipeline.gis.layers import LayerError, LayerWarning, read_dem, read_raster, read_vector
+from pipeline.gis.grid import NODATA_CODE, Grid
+from pipeline.gis.layers import (
+    LayerError,
+    LayerSpec,
+    LayerWarning,
+    read_dem,
+    read_raster,
+    read_vector,
+)
 from tests.pipeline.gis_helpers import tree_hashes, write_raster, write_vector
 
 # 10 km x 8 km around lon 21 E (zone 34's central meridian), lat -34 S

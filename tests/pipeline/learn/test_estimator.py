@@ -18,8 +18,9 @@ from pipeline.gis.grid import Grid
 from pipeline.learn.estimator import PriorEstimator
 from pipeline.learn.sufficient import DISCRETE_FORMS
 from pipeline.prior.likelihood import CategoricalLikelihood, LikelihoodModel, RoadDistanceLikelihood
+from pipeline.prior.terrain import TerrainPrior
 from tests.pipeline.gis_helpers import REGION_TOML
-from tests.pipeline.learn_synth import TRUE_MODEL, sample_points, small_stack
+from tests.pipeline.learn_synth import TRUE_MODEL, small_stack
 
 
 @pytest.fixture(scope="module")
@@ -62,7 +63,7 @@ def estimates(est: PriorEstimator, keys) -> tuple[np.ndarray, np.ndarray]:
 
 def fit_region(region, n: int, seed: int) -> tuple[PriorEstimator, dict]:
     stack, model, density = region
-    pts = sample_points(density, stack.grid, n, np.random.default_rng(seed))
+    pts = TerrainPrior.from_array(density, stack.grid).sample(n, np.random.default_rng(seed))
     est = PriorEstimator(features=stack, template=model).fit(pts)
     return est, true_params(est, model)
 
@@ -107,7 +108,7 @@ def test_standard_errors_are_calibrated_over_replicates() -> None:
     rng = np.random.default_rng(7)
     z2 = []
     for _ in range(30):
-        est = PriorEstimator(features=stack, template=TRUE_MODEL).fit(sample_points(density, stack.grid, 1500, rng))
+        est = PriorEstimator(features=stack, template=TRUE_MODEL).fit(TerrainPrior.from_array(density, stack.grid).sample(1500, rng))
         truth = true_params(est, TRUE_MODEL)
         val, se = estimates(est, truth)
         z2.extend(((val - np.array(list(truth.values()))) / se) ** 2)
@@ -131,7 +132,7 @@ def test_naive_equals_ml_when_features_are_independent() -> None:
     stack = independent_stack()
     template = LikelihoodModel({"land": CategoricalLikelihood({"grass": 1.0, "bush": 0.5, "rock": 0.2}),
                                 "road_distance": RoadDistanceLikelihood(100.0, 0.2)})
-    pts = sample_points(template.evaluate(stack), stack.grid, 3000, np.random.default_rng(2))
+    pts = TerrainPrior.from_array(template.evaluate(stack), stack.grid).sample(3000, np.random.default_rng(2))
     ml = PriorEstimator(features=stack, template=template).fit(pts)
     naive = PriorEstimator(features=stack, template=template, method="naive").fit(pts)
     for f in ("land", "road_distance"):
@@ -141,7 +142,7 @@ def test_naive_equals_ml_when_features_are_independent() -> None:
 
 def test_naive_is_count_ratio_and_differs_from_ml_when_features_correlate() -> None:
     stack = small_stack()
-    pts = sample_points(TRUE_MODEL.evaluate(stack), stack.grid, 4000, np.random.default_rng(9))
+    pts = TerrainPrior.from_array(TRUE_MODEL.evaluate(stack), stack.grid).sample(4000, np.random.default_rng(9))
     naive = PriorEstimator(features=stack, template=TRUE_MODEL, method="naive", penalty_sd=1e6).fit(pts)
     ml = PriorEstimator(features=stack, template=TRUE_MODEL, penalty_sd=1e6).fit(pts)
     # oracle: share of points over share of area per land class, straight from the arrays
@@ -161,8 +162,8 @@ def test_score_is_mean_log_density_of_the_normalised_fit() -> None:
     stack = small_stack()
     rng = np.random.default_rng(12)
     density = TRUE_MODEL.evaluate(stack)
-    est = PriorEstimator(features=stack, template=TRUE_MODEL).fit(sample_points(density, stack.grid, 800, rng))
-    test = sample_points(density, stack.grid, 300, rng)
+    est = PriorEstimator(features=stack, template=TRUE_MODEL).fit(TerrainPrior.from_array(density, stack.grid).sample(800, rng))
+    test = TerrainPrior.from_array(density, stack.grid).sample(300, rng)
     # oracle: evaluate the fitted table per cell, normalise by hand (per m²), look up each point's cell
     r = est.model_.evaluate(stack)
     dens = r / (r.sum() * stack.grid.cell_area)
@@ -177,7 +178,7 @@ def test_score_is_mean_log_density_of_the_normalised_fit() -> None:
 def test_model_toml_round_trip_through_the_pipeline(tmp_path) -> None:
     stack = small_stack()
     est = PriorEstimator(features=stack, template=TRUE_MODEL).fit(
-        sample_points(TRUE_MODEL.evaluate(stack), stack.grid, 600, np.random.default_rng(1)))
+        TerrainPrior.from_array(TRUE_MODEL.evaluate(stack), stack.grid).sample(600, np.random.default_rng(1)))
     path = est.model_.write_toml(tmp_path / "model.toml")
     back = LikelihoodModel.read_toml(path)
     assert back.to_dict() == est.model_.to_dict()
@@ -188,7 +189,7 @@ def test_model_toml_round_trip_through_the_pipeline(tmp_path) -> None:
 def test_points_on_water_and_off_grid_are_counted_dropped_or_softened() -> None:
     stack = small_stack()
     rng = np.random.default_rng(5)
-    pts = sample_points(TRUE_MODEL.evaluate(stack), stack.grid, 500, rng)
+    pts = TerrainPrior.from_array(TRUE_MODEL.evaluate(stack), stack.grid).sample(500, rng)
     rows, cols = np.nonzero(stack["water"].values == 1)
     wet = np.column_stack(stack.grid.transform @ (cols[:7] + 0.5, rows[:7] + 0.5))
     allpts = np.vstack([pts, wet, [[0.0, 0.0], [1e9, 1e9]]])
@@ -207,7 +208,7 @@ def test_points_on_water_and_off_grid_are_counted_dropped_or_softened() -> None:
 def test_flexible_binned_road_term_follows_the_true_curve() -> None:
     stack = small_stack()
     edges = [0.0, 40.0, 80.0, 160.0, 320.0]
-    pts = sample_points(TRUE_MODEL.evaluate(stack), stack.grid, 6000, np.random.default_rng(8))
+    pts = TerrainPrior.from_array(TRUE_MODEL.evaluate(stack), stack.grid).sample(6000, np.random.default_rng(8))
     est = PriorEstimator(features=stack, template=TRUE_MODEL, flexible={"road_distance": edges}, smooth_sd=0.0).fit(pts)
     (t,) = [t for t in est.terms_ if t.feature == "road_distance"]
     assert t.form == "binned"
@@ -273,7 +274,7 @@ def test_sklearn_estimator_checks() -> None:
 
 def test_grid_pass_is_cached_per_stack() -> None:
     stack = small_stack()
-    pts = sample_points(TRUE_MODEL.evaluate(stack), stack.grid, 300, np.random.default_rng(2))
+    pts = TerrainPrior.from_array(TRUE_MODEL.evaluate(stack), stack.grid).sample(300, np.random.default_rng(2))
     first = PriorEstimator(features=stack, template=TRUE_MODEL).fit(pts)
     again = clone(first).set_params(method="naive").fit(pts[:200])
     assert again.cell_stats_.area is first.cell_stats_.area  # the one pass, not redone
@@ -293,15 +294,15 @@ def test_hybrid_finds_a_spatial_cluster_and_stays_flat_without_one() -> None:
     bump = np.exp(-((xs - cx) ** 2 + (ys - cy) ** 2) / (2 * 150.0**2))
     rng = np.random.default_rng(4)
     bumpy = TRUE_MODEL.evaluate(stack) * (0.2 + 5 * bump)
-    pts = sample_points(bumpy, stack.grid, 2000, rng)
+    pts = TerrainPrior.from_array(bumpy, stack.grid).sample(2000, rng)
     terrain = PriorEstimator(features=stack, template=TRUE_MODEL).fit(pts)
     hybrid = PriorEstimator(features=stack, template=TRUE_MODEL, spatial_bandwidth=120.0).fit(pts)
     p = hybrid.likelihoods_["spatial_kde"]
     assert p["gamma"] > 0.3 and 0 < p["alpha"] <= 1
-    test = sample_points(bumpy, stack.grid, 2000, rng)
+    test = TerrainPrior.from_array(bumpy, stack.grid).sample(2000, rng)
     assert hybrid.score(test) > terrain.score(test) + 0.05
-    plain = sample_points(TRUE_MODEL.evaluate(stack), stack.grid, 2000, rng)
-    fresh = sample_points(TRUE_MODEL.evaluate(stack), stack.grid, 2000, rng)
+    plain = TerrainPrior.from_array(TRUE_MODEL.evaluate(stack), stack.grid).sample(2000, rng)
+    fresh = TerrainPrior.from_array(TRUE_MODEL.evaluate(stack), stack.grid).sample(2000, rng)
     t2 = PriorEstimator(features=stack, template=TRUE_MODEL).fit(plain)
     h2 = PriorEstimator(features=stack, template=TRUE_MODEL, spatial_bandwidth=120.0).fit(plain)
     assert abs(h2.score(fresh) - t2.score(fresh)) < 0.02

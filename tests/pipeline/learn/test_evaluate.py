@@ -11,13 +11,14 @@ from sklearn.model_selection import GroupKFold, cross_val_score
 from pipeline.learn.estimator import PriorEstimator
 from pipeline.learn.evaluate import block_cv
 from pipeline.learn.kde import KDE_EPS, block_ids, fit_kde_cv, grid_kde, log_kde_feature
-from tests.pipeline.learn_synth import TRUE_MODEL, sample_points, small_stack
+from pipeline.prior.terrain import TerrainPrior
+from tests.pipeline.learn_synth import TRUE_MODEL, small_stack
 
 
 def test_grid_kde_matches_a_direct_gaussian_sum() -> None:
     stack = small_stack(40, 50)
     rng = np.random.default_rng(0)
-    pts = sample_points(np.ones(stack.grid.shape), stack.grid, 60, rng)
+    pts = TerrainPrior.from_array(np.ones(stack.grid.shape), stack.grid).sample(60, rng)
     h = 90.0
     dens = grid_kde(stack.grid, pts, h)
     # oracle: 2-D Gaussian mixture of the points snapped to their cell centres, at every cell centre
@@ -33,7 +34,7 @@ def test_grid_kde_matches_a_direct_gaussian_sum() -> None:
 @pytest.mark.parametrize("block", [None, 300.0])
 def test_held_out_kde_values_equal_a_kde_of_the_other_points(block) -> None:
     stack = small_stack(40, 50)
-    pts = sample_points(np.ones(stack.grid.shape), stack.grid, 80, np.random.default_rng(1))
+    pts = TerrainPrior.from_array(np.ones(stack.grid.shape), stack.grid).sample(80, np.random.default_rng(1))
     groups = None if block is None else block_ids(pts, stack.grid.bounds[:2], block)
     h = 70.0
     _, held = log_kde_feature(stack.grid, pts, h, groups)
@@ -66,7 +67,7 @@ def test_block_cv_scores_models_on_the_same_held_out_blocks() -> None:
     # a spatial cluster (sd 250 m, blocks of 300 m) the terrain lacks, which other blocks' points predict
     bump = np.exp(-((xs - xs.mean() + 300) ** 2 + (ys - ys.mean() - 200) ** 2) / (2 * 250.0**2))
     rng = np.random.default_rng(3)
-    pts = sample_points(TRUE_MODEL.evaluate(stack) * (0.05 + 8 * bump), stack.grid, 1500, rng)
+    pts = TerrainPrior.from_array(TRUE_MODEL.evaluate(stack) * (0.05 + 8 * bump), stack.grid).sample(1500, rng)
     rows, cols = np.nonzero(stack["water"].values == 1)
     wet = np.column_stack(stack.grid.transform @ (cols[:3] + 0.5, rows[:3] + 0.5))
     with pytest.warns(UserWarning, match="3 on structural zeros"):
@@ -89,7 +90,7 @@ def test_block_cv_scores_models_on_the_same_held_out_blocks() -> None:
 
 def test_block_cv_needs_enough_blocks() -> None:
     stack = small_stack()
-    pts = sample_points(TRUE_MODEL.evaluate(stack), stack.grid, 50, np.random.default_rng(0))
+    pts = TerrainPrior.from_array(TRUE_MODEL.evaluate(stack), stack.grid).sample(50, np.random.default_rng(0))
     with pytest.raises(ValueError, match="blocks"):
         block_cv(pts, PriorEstimator(features=stack, template=TRUE_MODEL), n_folds=5, block_size=1e6, progress=False)
 
@@ -97,7 +98,7 @@ def test_block_cv_needs_enough_blocks() -> None:
 def test_cross_val_score_with_block_groups_equals_block_cv() -> None:
     """scikit-learn's own CV on spatial-block groups gives block_cv's per-fold terrain scores."""
     stack = small_stack(60, 80)
-    pts = sample_points(TRUE_MODEL.evaluate(stack), stack.grid, 800, np.random.default_rng(4))
+    pts = TerrainPrior.from_array(TRUE_MODEL.evaluate(stack), stack.grid).sample(800, np.random.default_rng(4))
     est = PriorEstimator(features=stack, template=TRUE_MODEL)
     res = block_cv(pts, est, n_folds=4, block_size=300.0, models=("uniform", "terrain"), progress=False)
     assert res.n_excluded == 0

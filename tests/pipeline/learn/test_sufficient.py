@@ -17,7 +17,7 @@ from pipeline.prior.likelihood import (
     LikelihoodModel,
 )
 from pipeline.prior.terrain import TerrainPrior
-from tests.pipeline.learn_synth import TRUE_MODEL, sample_points, small_stack
+from tests.pipeline.learn_synth import TRUE_MODEL, small_stack
 
 
 def objective_for(stack, template, points, flexible=None):
@@ -75,7 +75,7 @@ def test_loglik_matches_direct_per_cell_density(flexible) -> None:
     stack = small_stack()
     rng = np.random.default_rng(3)
     r = TRUE_MODEL.evaluate(stack)
-    pts = sample_points(r, stack.grid, 400, rng)
+    pts = TerrainPrior.from_array(r, stack.grid).sample(400, rng)
     est, obj = objective_for(stack, TRUE_MODEL, pts, flexible)
     for trial in range(4):
         x = obj.x0 + (rng.normal(scale=0.4, size=obj.x0.shape) if trial else 0.0)
@@ -91,7 +91,7 @@ def test_loglik_matches_direct_per_cell_density(flexible) -> None:
 def test_gradient_matches_finite_differences() -> None:
     stack = small_stack()
     rng = np.random.default_rng(4)
-    pts = sample_points(TRUE_MODEL.evaluate(stack), stack.grid, 300, rng)
+    pts = TerrainPrior.from_array(TRUE_MODEL.evaluate(stack), stack.grid).sample(300, rng)
     template = LikelihoodModel({**TRUE_MODEL.terms, "land": CategoricalLikelihood({"grass": 1.0, "bush": 0.7, "rock": 0.3})})
     # the bin [10, 20) m is empty on a 20 m grid (distances 0, 20, 28.3, ...): fixed, unidentified
     est, obj = objective_for(stack, template, pts, {"road_distance": [0.0, 10.0, 20.0, 100.0, 300.0]})
@@ -113,7 +113,7 @@ def test_gradient_matches_finite_differences() -> None:
 
 def test_road_gradient_matches_finite_differences() -> None:
     stack = small_stack()
-    pts = sample_points(TRUE_MODEL.evaluate(stack), stack.grid, 300, np.random.default_rng(5))
+    pts = TerrainPrior.from_array(TRUE_MODEL.evaluate(stack), stack.grid).sample(300, np.random.default_rng(5))
     _, obj = objective_for(stack, TRUE_MODEL, pts)
     x = obj.x0.copy()
     x[-2:] = [np.log(120.0), 0.3]  # the road term is last in TRUE_MODEL

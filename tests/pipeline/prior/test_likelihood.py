@@ -7,8 +7,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.features.stack import NODATA_CODE, Feature, FeatureStack
-from pipeline.gis.grid import Grid
+from pipeline.features.stack import Feature, FeatureStack
+from pipeline.gis.grid import NODATA_CODE, Grid
 from pipeline.prior.likelihood import (
     BinnedLikelihood,
     CategoricalLikelihood,

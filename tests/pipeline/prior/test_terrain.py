@@ -9,6 +9,7 @@ from affine import Affine
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
+from scipy import stats
 
 from pipeline.gis.grid import Grid
 from pipeline.prior.terrain import PriorError, TerrainPrior
@@ -187,3 +188,53 @@ def test_read_errors_name_the_file(tmp_path):
     corrupt.write_bytes(b"not a tiff")
     with pytest.raises(PriorError, match="prior.tif: cannot read"):
         TerrainPrior.read(corrupt)
+
+
+def _sampling_prior(height: int, width: int, cell: float, seed: int, zeros: bool = True) -> TerrainPrior:
+    rng = np.random.default_rng(seed)
+    r = rng.random((height, width)) ** 3
+    if zeros:
+        r[rng.random((height, width)) < 0.2] = 0.0  # structural zeros, like water
+    grid = Grid("EPSG:32633", Affine(cell, 0.0, 300000.0, 0.0, -cell, 6200000.0), height, width)
+    return TerrainPrior.from_array(r, grid)
+
+
+def _sampled_cell_counts(prior: TerrainPrior, pts: np.ndarray) -> np.ndarray:
+    u, v = prior.grid.to_pixel(pts[:, 0], pts[:, 1])
+    counts = np.zeros(prior.grid.shape, dtype=np.int64)
+    np.add.at(counts, (v.astype(int), u.astype(int)), 1)
+    return counts
+
+
+def test_sampler_cell_frequencies_match_sampling_prior() -> None:
+    prior = _sampling_prior(6, 9, 20.0, 0)
+    n = 40000
+    pts = prior.sample(n, np.random.default_rng(1))
+    counts = _sampled_cell_counts(prior, pts)
+    mass = prior.density * prior.grid.cell_area
+    assert counts[mass == 0].sum() == 0
+    pos = mass > 0
+    _, p = stats.chisquare(counts[pos], n * mass[pos] / mass[pos].sum())
+    assert p > 1e-3
+
+
+def test_sampler_is_uniform_inside_cells() -> None:
+    prior = _sampling_prior(4, 5, 30.0, 2)
+    pts = prior.sample(20000, np.random.default_rng(3))
+    u, v = prior.grid.to_pixel(pts[:, 0], pts[:, 1])
+    for frac in (u % 1.0, v % 1.0):
+        assert stats.kstest(frac, "uniform").pvalue > 1e-3
+
+
+def test_sampler_respects_region() -> None:
+    prior = _sampling_prior(20, 20, 10.0, 4, zeros=False)
+    region = (300050.0, 6199850.0, 300120.0, 6199950.0)  # columns 5..12, rows 5..15
+    pts = prior.sample(30000, np.random.default_rng(5), region)
+    assert (pts[:, 0] >= region[0]).all() and (pts[:, 0] < region[2]).all()
+    assert (pts[:, 1] >= region[1]).all() and (pts[:, 1] < region[3]).all()
+    counts = _sampled_cell_counts(prior, pts)[5:15, 5:12]
+    mass = prior.density[5:15, 5:12]
+    _, p = stats.chisquare(counts.ravel(), 30000 * mass.ravel() / mass.sum())
+    assert p > 1e-3
+    with pytest.raises(ValueError, match="cell-aligned"):
+        prior.sample(10, np.random.default_rng(0), (300055.0, 6199850.0, 300120.0, 6199950.0))

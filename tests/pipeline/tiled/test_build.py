@@ -20,16 +20,12 @@ from pipeline.build.region import build_features, build_region_prior
 from pipeline.config.region import load_config
 from pipeline.gis.layers import LayerError
 from pipeline.prior.likelihood import LikelihoodModel
-from pipeline.prior.terrain import PriorError, TerrainPrior, sat_paths
-from pipeline.tiled.build import (
-    NpyRows,
-    TiledBuildError,
-    build_prior_tiled,
-    distance_caps,
-    needed_features,
-    tile_features,
-    tile_windows,
-)
+from pipeline.prior.terrain import PriorError, TerrainPrior
+from pipeline.prior.write import sat_paths
+from pipeline.tiled.build import build_prior_tiled
+from pipeline.tiled.store import NpyRows
+from pipeline.tiled.tiles import tile_features
+from pipeline.tiled.windows import TiledBuildError, distance_caps, needed_features, tile_windows
 from tests.dask_helpers import shared_client
 from tests.pipeline.gis_helpers import REGION_TOML, write_config, write_raster
 
@@ -154,9 +150,9 @@ def test_npy_rows_sum_and_windows(h, w, seed, tmp_path_factory):
 
 
 def test_pairwise_sum_over_many_leaves(tmp_path, monkeypatch):
-    import pipeline.tiled.build as tiled
+    import pipeline.tiled.store as store_module
 
-    monkeypatch.setattr(tiled, "_SUM_LEAF", 1000)
+    monkeypatch.setattr(store_module, "_SUM_LEAF", 1000)
     a = np.random.default_rng(3).random((401, 377))
     store = NpyRows(tmp_path / "a.npy", a.shape, create=True)
     store.write(0, 0, a)

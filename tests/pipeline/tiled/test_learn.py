@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 import tomllib
 import warnings
 
@@ -20,10 +21,8 @@ from pipeline.config.region import load_config
 from pipeline.features.stack import Feature, FeatureStack
 from pipeline.gis.grid import Grid
 from pipeline.learn.estimator import PriorEstimator, make_terms
-from pipeline.learn.run import learn_region
 from pipeline.learn.sufficient import Term, cell_stats, point_stats, with_range
 from pipeline.prior.likelihood import LikelihoodModel
-from pipeline.tiled.build import TiledBuildError
 from pipeline.tiled.learn import (
     merge_cell_stats,
     tiled_cell_stats,
@@ -31,9 +30,9 @@ from pipeline.tiled.learn import (
     tiled_stats,
     tiled_terms,
 )
+from pipeline.tiled.windows import TiledBuildError
 from tests.dask_helpers import shared_client
 from tests.pipeline.gis_helpers import write_config
-from tests.pipeline.learn_synth import sample_points
 from tests.pipeline.tiled.test_build import region
 
 TILE = 96  # the 300 x 300 cut in 4 x 4 tiles, the last row and column ragged
@@ -51,7 +50,7 @@ def setup(tmp_path_factory):
         stack = build_features(config, progress=False)
     g = config.grid
     rng = np.random.default_rng(3)
-    drawn = sample_points(build_prior(stack, config.model).density, g, 600, rng)
+    drawn = build_prior(stack, config.model).sample(600, rng)
     x0, y0, x1, y1 = g.bounds
     edges = np.array([[x0 + TILE * g.dx, y1 - TILE * g.dy], [x0 + 2 * TILE * g.dx, y1 - 5.0], [x0, y0 + 1e-6],
                       [x0 + 3 * TILE * g.dx, y1 - 3 * TILE * g.dy], [x1 - 1e-6, y1]])
@@ -215,9 +214,12 @@ def test_cli_tiled_on_a_scheduler_writes_the_in_memory_model(setup, tmp_path, ca
     assert got_out.with_suffix(".fit.png").stat().st_size > 0
 
 
-def test_cli_tiled_refuses_the_hybrid_prior(setup, tmp_path):
+def test_cli_tiled_refuses_the_hybrid_prior(setup, tmp_path, capsys):
     tmp, config, _, pts = setup
     csv = tmp_path / "targets.csv"
     np.savetxt(csv, pts[:20], delimiter=",", header="x,y", comments="")
-    with pytest.raises(ValueError, match="hybrid-prior.*tiled"):
-        learn_region(config.path, csv, tmp_path / "m.toml", hybrid_prior=tmp_path / "h.tif", tiled=True, progress=False)
+    code = main(["-q", "learn", str(config.path), "--targets", str(csv), "--out", str(tmp_path / "m.toml"),
+                 "--hybrid-prior", str(tmp_path / "h.tif"), "--tiled"])
+    assert code == 1
+    assert re.search("error: .*hybrid-prior.*tiled", capsys.readouterr().err)
+    assert not (tmp_path / "m.toml").exists()

@@ -9,7 +9,7 @@ from scipy import stats
 
 from pipeline.gis.grid import Grid
 from pipeline.prior.terrain import TerrainPrior
-from tracker.study.simulate import AirborneSensor, central_windows, sample_targets, simulate
+from tracker.study.simulate import AirborneSensor, central_windows, simulate
 
 CRS = "EPSG:32633"
 
@@ -28,40 +28,6 @@ def _cell_counts(prior: TerrainPrior, pts: np.ndarray) -> np.ndarray:
     counts = np.zeros(prior.grid.shape, dtype=np.int64)
     np.add.at(counts, (v.astype(int), u.astype(int)), 1)
     return counts
-
-
-def test_sampler_cell_frequencies_match_prior() -> None:
-    prior = _prior(6, 9, 20.0, 0)
-    n = 40000
-    pts = sample_targets(prior, n, np.random.default_rng(1))
-    counts = _cell_counts(prior, pts)
-    mass = prior.density * prior.grid.cell_area
-    assert counts[mass == 0].sum() == 0
-    pos = mass > 0
-    _, p = stats.chisquare(counts[pos], n * mass[pos] / mass[pos].sum())
-    assert p > 1e-3
-
-
-def test_sampler_is_uniform_inside_cells() -> None:
-    prior = _prior(4, 5, 30.0, 2)
-    pts = sample_targets(prior, 20000, np.random.default_rng(3))
-    u, v = prior.grid.to_pixel(pts[:, 0], pts[:, 1])
-    for frac in (u % 1.0, v % 1.0):
-        assert stats.kstest(frac, "uniform").pvalue > 1e-3
-
-
-def test_sampler_respects_region() -> None:
-    prior = _prior(20, 20, 10.0, 4, zeros=False)
-    region = (300050.0, 6199850.0, 300120.0, 6199950.0)  # columns 5..12, rows 5..15
-    pts = sample_targets(prior, 30000, np.random.default_rng(5), region)
-    assert (pts[:, 0] >= region[0]).all() and (pts[:, 0] < region[2]).all()
-    assert (pts[:, 1] >= region[1]).all() and (pts[:, 1] < region[3]).all()
-    counts = _cell_counts(prior, pts)[5:15, 5:12]
-    mass = prior.density[5:15, 5:12]
-    _, p = stats.chisquare(counts.ravel(), 30000 * mass.ravel() / mass.sum())
-    assert p > 1e-3
-    with pytest.raises(ValueError, match="cell-aligned"):
-        sample_targets(prior, 10, np.random.default_rng(0), (300055.0, 6199850.0, 300120.0, 6199950.0))
 
 
 def test_central_windows_paper_geometry() -> None:
@@ -171,7 +137,7 @@ def test_swellendam_scenario(swellendam) -> None:
     prior = build_region_prior(config, progress=False)
     region, keep = central_windows(prior, 14000.0, 0.5)
     n = 50000
-    pts = sample_targets(prior, n, np.random.default_rng(12), region)
+    pts = prior.sample(n, np.random.default_rng(12), region)
     u, v = prior.grid.to_pixel(pts[:, 0], pts[:, 1])
     (u0, u1), (v0, v1) = (np.rint(a).astype(int) for a in prior.grid.to_pixel(region[::2], region[3::-2]))
     block = 50  # cells of 20 m: 1 km blocks (the last row/column of blocks may be partial)
