@@ -13,8 +13,8 @@ from pathlib import Path
 from tracker.association.greedy import DEFAULT_GAMMA, VARIANTS
 from tracker.integrate.terraces import METHODS as INTEGRATORS
 from tracker.io.tracks import track_files
+from tracker.models.motion import ConstantVelocity, Static
 from tracker.models.sfunc import ExpS, PoissonS
-from tracker.types.hypotheses import ConstantVelocity, Static
 
 
 def cmd_run(args: argparse.Namespace) -> None:

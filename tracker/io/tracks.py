@@ -26,8 +26,8 @@ from rasterio.crs import CRS
 from common.atomic import atomic_paths
 from pipeline.prior.terrain import TerrainPrior
 from tracker.association.greedy import AssociationResult, Estimate, associate
+from tracker.models.motion import MotionModel
 from tracker.models.sfunc import ExpS, SModel
-from tracker.types.hypotheses import MotionModel
 from tracker.types.reports import Reports
 
 REPORT_COLUMNS = ("x", "y", "time", "cov_xx", "cov_xy", "cov_yy")

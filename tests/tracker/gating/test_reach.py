@@ -30,8 +30,9 @@ def test_project_matches_transition_matrices(seed, dim, q):
         f = np.eye(2 * dim)
         f[:dim, dim:] = dt[i] * np.eye(dim)
         a = abs(dt[i])
-        qm = q * np.block([[a**3 / 3 * np.eye(dim), a**2 / 2 * np.eye(dim)],
-                           [a**2 / 2 * np.eye(dim), a * np.eye(dim)]])
+        # the cross term keeps dt's sign (retrodiction: see tracker.models.motion)
+        qm = q * np.block([[a**3 / 3 * np.eye(dim), dt[i] * a / 2 * np.eye(dim)],
+                           [dt[i] * a / 2 * np.eye(dim), a * np.eye(dim)]])
         full = f @ p[i] @ f.T + qm
         np.testing.assert_allclose(pos[i], (f @ x[i])[:dim], rtol=1e-12, atol=1e-9)
         np.testing.assert_allclose(cov[i], full[:dim, :dim], rtol=1e-10, atol=1e-9)
