@@ -11,20 +11,26 @@ import numba as nb
 import numpy as np
 
 
-def check_gaussians(means: np.ndarray, covs: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray]:
-    """Validate (N, d) means and (N, d, d) symmetric positive-definite covariances.
+def check_gaussians(means: np.ndarray, covs: np.ndarray, what: str, *, means_name: str = "means",
+                    covs_name: str = "covariances") -> tuple[np.ndarray, np.ndarray]:
+    """Validate (N, d) means and (N, d, d) symmetric positive-definite covariances: the tracker's one
+    positive-definite check (reports, integrators, gating).
 
-    Raises ``ValueError`` naming ``what`` and the offending indices.
+    Returns both as float64 arrays. Raises ``ValueError`` naming ``what``, the offending argument
+    (``means_name`` or ``covs_name``) and the offending indices.
     """
     means = np.asarray(means, dtype=np.float64)
     covs = np.asarray(covs, dtype=np.float64)
     if means.ndim != 2 or covs.ndim != 3 or covs.shape != (means.shape[0], means.shape[1], means.shape[1]):
-        raise ValueError(f"{what}: means must be (N, d) and covariances (N, d, d); got {means.shape} and {covs.shape}")
+        raise ValueError(f"{what}: {means_name} must be (N, d) and {covs_name} (N, d, d); got {means.shape} "
+                         f"and {covs.shape}")
     if means.shape[1] == 2:
         flags = _flags_2d(np.ascontiguousarray(means), np.ascontiguousarray(covs))
     else:
         flags = _flags(means, covs)
-    for bit, words in enumerate(("non-finite means", "non-finite covariances", "covariances not symmetric", "covariances not positive definite")):
+    problems = (f"non-finite {means_name}", f"non-finite {covs_name}", f"{covs_name} not symmetric",
+                f"{covs_name} not positive definite")
+    for bit, words in enumerate(problems):
         bad = np.flatnonzero(flags == bit + 1)
         if bad.size:
             raise ValueError(f"{what}: {words} at indices {bad[:10].tolist()}")
