@@ -52,6 +52,7 @@ import math
 import weakref
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numba
 import numpy as np
@@ -68,9 +69,13 @@ from tracker.association.walk import (
     pair_geometry,
     walk,
 )
+from tracker.models.motion import ConstantVelocity, MotionModel, Static
 from tracker.models.sfunc import ExpS, PoissonS, SModel
-from tracker.types.hypotheses import ConstantVelocity, Hypotheses, MotionModel, Static
+from tracker.types.hypotheses import Hypotheses
 from tracker.types.reports import Reports, check_gaussians
+
+if TYPE_CHECKING:  # gating loads on first use (_default_gater)
+    from tracker.gating import Gater
 
 VARIANTS = ("UU", "UT", "TT")
 GATE_PROB = 1.0 - 1e-9
@@ -86,7 +91,6 @@ _RMAX_SLACK = math.log(2.0)
 _LOG_2PI = math.log(2.0 * math.pi)
 
 Integrator = Callable[..., np.ndarray]
-Gater = Callable[..., tuple]
 
 
 @dataclass(frozen=True)
@@ -206,7 +210,7 @@ class Tracker:
 
     ``variant`` "TT", "UT" or "UU"; the S factor as ``tau`` (S = e^{-nτ}) or ``s_model``
     (:class:`~tracker.models.sfunc.ExpS`, :class:`~tracker.models.sfunc.PoissonS`); ``motion``
-    :class:`~tracker.types.hypotheses.Static` or :class:`~tracker.types.hypotheses.ConstantVelocity`; ``gamma``
+    :class:`~tracker.models.motion.Static` or :class:`~tracker.models.motion.ConstantVelocity`; ``gamma``
     the gate on d² (decisions do not depend on it, see the module doc); ``off_prior`` what to do
     with a report whose ∫G(z,V) r is 0 (off the grid or on structural zeros) in TT/UT: "raise"
     (default; nothing is changed) or "skip" (assignment -1, not counted in k). ``gater`` and
