@@ -17,9 +17,11 @@ from scipy.spatial import cKDTree
 from sklearn.neighbors import BallTree
 
 from bench.timing import best_time
-from tracker.gating import costmodel
+from tracker.gating.calibrate import calibrate
+from tracker.gating.costmodel import CostConstants
 from tracker.gating.exact import lambda_max_bound
 from tracker.gating.gate import gate, gate_threshold
+from tracker.study.projections import predicted_choice
 
 FIGURES = Path(__file__).resolve().parent / "figures"
 GAMMA = gate_threshold(0.99, 2)
@@ -177,19 +179,22 @@ def bench_brute(n: int, subset: int, repeats: int) -> dict:
             "speedup": scaled / t_gate, "goal": 300.0}
 
 
-def bench_moving(n: int, rounds: int, ms: list[int], per_km2: float = 1.0) -> dict:
-    """Sweep M_D and both orientations (round-robin); compare with the cost model's pick."""
+def bench_moving(n: int, rounds: int, ms: list[int], constants: CostConstants,
+                 per_km2: float = 1.0) -> dict:
+    """Sweep M_D and both orientations (round-robin); compare with the cost model's pick under
+    ``constants``."""
     tm, tc, rm, rc, rt = moving_scene(n, per_km2=per_km2)
     kw = dict(threshold=GAMMA, report_times=rt, process_noise=1.0)
     gate(tm[:10], tc[:10], rm[:10], rc[:10], threshold=GAMMA, report_times=rt[:10])
-    choice = _choice(tm, tc, rm, rc, rt)
+    choice = predicted_choice(tm, tc, rm, rc, rt, threshold=GAMMA, process_noise=1.0,
+                              constants=constants)
     chosen = f"{'reports' if choice.on_reports else 'tracks'}:{choice.m}"
     configs = [(o, m) for o in ("reports", "tracks") for m in ms]
     if chosen not in {f"{o}:{m}" for o, m in configs}:
         configs.append(("reports" if choice.on_reports else "tracks", choice.m))
     fns = {f"{o}:{m}": (lambda o=o, m=m: gate(tm, tc, rm, rc, **kw, n_projections=m,
                                               orientation=o)) for o, m in configs}
-    fns["auto"] = lambda: gate(tm, tc, rm, rc, **kw)
+    fns["auto"] = lambda: gate(tm, tc, rm, rc, **kw, constants=constants)
     sweep, res = interleaved(fns, rounds)
     t_auto = sweep.pop("auto")
     best_key = min(sweep, key=sweep.get)
@@ -203,14 +208,6 @@ def bench_moving(n: int, rounds: int, ms: list[int], per_km2: float = 1.0) -> di
         "speedup_vs_md1": t_one / sweep[chosen], "goal_s": 1.5,
         "goal_met": bool(t_auto <= 1.5 and sweep[chosen] <= 1.2 * sweep[best_key]),
     }
-
-
-def _choice(tm, tc, rm, rc, rt):
-    """The cost model's pick for a scene, via the same path gate() uses."""
-    from tracker.gating import gate as gating
-
-    sc = gating._validate(tm, tc, rm, rc, rt, 0.0, 1.0)
-    return gating._plan(sc, GAMMA, 0.0, "auto", "auto").choice
 
 
 def bench_scaling(sizes: list[int], ref_max: int) -> dict:
@@ -262,16 +259,17 @@ def run(quick: bool = False) -> dict:
     n = 10_000 if quick else 100_000
     reps = 2 if quick else 3
     sweep = [1, 2, 4, 8] if quick else [1, 2, 3, 4, 6, 8, 12]
+    constants = calibrate(n=n)  # measured in this run: the cost model's picks below use them
     out = {
         "static": bench_static(n, reps),
-        "moving": bench_moving(n, reps, sweep),
-        "moving_dense": bench_moving(5000 if quick else 30_000, reps, sweep + [16, 24],
+        "moving": bench_moving(n, reps, sweep, constants),
+        "moving_dense": bench_moving(5000 if quick else 30_000, reps, sweep + [16, 24], constants,
                                      per_km2=100.0),
         "brute": bench_brute(n, 100 if quick else 300, 1),
         "scaling": bench_scaling([1000, 3000, 10_000, 30_000] if quick else
                                  [1000, 3000, 10_000, 30_000, 100_000, 300_000, 1_000_000],
                                  30_000 if quick else 300_000),
-        "cost_constants": costmodel.constants().__dict__,
+        "cost_constants": constants.__dict__,
         "load_average_1_5_15min": list(os.getloadavg()),
         "cpu_count": os.cpu_count(),
     }

@@ -12,8 +12,8 @@ from pathlib import Path
 
 from tracker.association import DEFAULT_GAMMA, VARIANTS
 from tracker.integrate import METHODS
+from tracker.models.motion import ConstantVelocity, Static
 from tracker.models.sfunc import ExpS, PoissonS
-from tracker.types.hypotheses import ConstantVelocity, Static
 
 
 def cmd_run(args: argparse.Namespace) -> None:
@@ -158,6 +158,21 @@ def add_show_parser(sub) -> None:
     p.set_defaults(func=cmd_show)
 
 
+def cmd_calibrate(args: argparse.Namespace) -> None:
+    from tracker.gating.calibrate import calibrate
+
+    constants = calibrate(out=args.out)
+    print(f"gating cost constants (s per unit): {constants}; wrote {args.out} "
+          f"(use: gate(..., constants=CostConstants.read({str(args.out)!r})))")
+
+
+def add_calibrate_parser(sub) -> None:
+    p = sub.add_parser("calibrate", help="time gate() on this machine (about 10 s) and write the cost model's constants")
+    p.add_argument("--out", type=Path, default=Path("gating_costs.json"),
+                   help="JSON file to write (default gating_costs.json); read it with CostConstants.read")
+    p.set_defaults(func=cmd_calibrate)
+
+
 def make_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="terrain-track", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -165,6 +180,7 @@ def make_parser() -> argparse.ArgumentParser:
     add_experiment_parser(sub)
     add_simulate_parser(sub)
     add_show_parser(sub)
+    add_calibrate_parser(sub)
     return parser
 
 

@@ -52,6 +52,7 @@ import math
 import weakref
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numba
 import numpy as np
@@ -69,10 +70,14 @@ from tracker.association.walk import (
     walk,
 )
 from tracker.integrate import Integrator, integrate_checked
+from tracker.models.motion import ConstantVelocity, MotionModel, Static
 from tracker.models.sfunc import ExpS, PoissonS, SModel
 from tracker.types.estimate import Estimate
-from tracker.types.hypotheses import ConstantVelocity, Hypotheses, MotionModel, Static
+from tracker.types.hypotheses import Hypotheses
 from tracker.types.reports import Reports
+
+if TYPE_CHECKING:  # gating loads on first use (_default_gater)
+    from tracker.gating import Gater
 
 VARIANTS = ("UU", "UT", "TT")
 GATE_PROB = 1.0 - 1e-9
@@ -87,7 +92,6 @@ LOW_C = 256
 _RMAX_SLACK = math.log(2.0)
 _LOG_2PI = math.log(2.0 * math.pi)
 
-Gater = Callable[..., tuple]
 
 
 @dataclass
@@ -104,9 +108,9 @@ class AssociationResult:
 
 
 def _default_gater() -> Gater:
-    from tracker.gating.gate import gate
+    from tracker.gating.gate import gate_unchecked
 
-    return gate
+    return gate_unchecked
 
 
 _RMAX_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
@@ -186,11 +190,11 @@ class Tracker:
 
     ``variant`` "TT", "UT" or "UU"; the S factor as ``tau`` (S = e^{-nτ}) or ``s_model``
     (:class:`~tracker.models.sfunc.ExpS`, :class:`~tracker.models.sfunc.PoissonS`); ``motion``
-    :class:`~tracker.types.hypotheses.Static` or :class:`~tracker.types.hypotheses.ConstantVelocity`; ``gamma``
+    :class:`~tracker.models.motion.Static` or :class:`~tracker.models.motion.ConstantVelocity`; ``gamma``
     the gate on d² (decisions do not depend on it, see the module doc); ``off_prior`` what to do
     with a report whose ∫G(z,V) r is 0 (off the grid or on structural zeros) in TT/UT: "raise"
-    (default; nothing is changed) or "skip" (assignment -1, not counted in k). ``gater`` defaults to
-    :func:`tracker.gating.gate.gate`; ``integrator`` (an :class:`~tracker.integrate.Integrator`, given
+    (default; nothing is changed) or "skip" (assignment -1, not counted in k). ``gater`` (a :class:`~tracker.gating.Gater`) defaults to
+    :func:`tracker.gating.gate.gate_unchecked` (the reports and hypotheses are checked already); ``integrator`` (an :class:`~tracker.integrate.Integrator`, given
     only Gaussians built from checked reports) to :func:`tracker.integrate.integrate_checked`.
 
     Fitted state: ``hypotheses_``, ``n_detected_``, ``n_reports_`` (k), ``stats_``.

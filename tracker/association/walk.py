@@ -26,8 +26,8 @@ import math
 import numpy as np
 from numba import njit
 
+from tracker.models.motion import MOTION_CV, cv_cov_entry, cv_mean_entry
 from tracker.models.sfunc import log_s_ratio_code
-from tracker.types.hypotheses import MOTION_CV
 
 DONE, CONFLICT, WIDEN = 0, 1, 2
 _LOG_2PI = math.log(2.0 * math.pi)
@@ -35,17 +35,14 @@ _LOG_2PI = math.log(2.0 * math.pi)
 
 @njit(cache=True, inline="always")
 def _pos_at(Hm, Hc, Ht, h, t, motion, q):
-    """Position mean and covariance (x, y, c00, c01, c11) of hypothesis h predicted to time t."""
+    """Position mean and covariance (x, y, c00, c01, c11) of hypothesis h predicted to time t
+    (:func:`tracker.models.motion.cv_cov_entry`)."""
     if motion != MOTION_CV:
         return Hm[h, 0], Hm[h, 1], Hc[h, 0, 0], Hc[h, 0, 1], Hc[h, 1, 1]
     dt = t - Ht[h]
-    noise = q * abs(dt) ** 3 / 3.0
-    x = Hm[h, 0] + dt * Hm[h, 2]
-    y = Hm[h, 1] + dt * Hm[h, 3]
-    c00 = Hc[h, 0, 0] + 2.0 * dt * Hc[h, 0, 2] + dt * dt * Hc[h, 2, 2] + noise
-    c01 = Hc[h, 0, 1] + dt * (Hc[h, 0, 3] + Hc[h, 1, 2]) + dt * dt * Hc[h, 2, 3]
-    c11 = Hc[h, 1, 1] + 2.0 * dt * Hc[h, 1, 3] + dt * dt * Hc[h, 3, 3] + noise
-    return x, y, c00, c01, c11
+    d = Hm.shape[1] // 2
+    return (cv_mean_entry(Hm, h, 0, dt, d), cv_mean_entry(Hm, h, 1, dt, d), cv_cov_entry(Hc, h, 0, 0, dt, q, d),
+            cv_cov_entry(Hc, h, 0, 1, dt, q, d), cv_cov_entry(Hc, h, 1, 1, dt, q, d))
 
 
 @njit(cache=True, inline="always")
@@ -78,26 +75,18 @@ def _pair_geom(h, k, blk, hyp, cfg, out_m, out_c, out_pm, out_pc):
     Hm, Hc, Ht = hyp[0], hyp[1], hyp[4]
     motion, q = cfg[5], cfg[6]
     D = Hm.shape[1]
-    a = Hm[h].copy()
-    A = Hc[h].copy()
     if motion == MOTION_CV:
         dt = t[k] - Ht[h]
         d = D // 2
-        for i in range(d):
-            a[i] += dt * Hm[h, d + i]
-        # P' = F P Fᵀ + Q with F = [[I, dt I], [0, I]]: rows then columns.
-        for i in range(d):
-            for c in range(D):
-                A[i, c] += dt * A[d + i, c]
+        a = np.empty(D)
+        A = np.empty((D, D))
         for r in range(D):
-            for i in range(d):
-                A[r, i] += dt * A[r, d + i]
-        adt = abs(dt)
-        for i in range(d):
-            A[i, i] += q * adt**3 / 3.0
-            A[i, d + i] += q * dt * adt / 2.0
-            A[d + i, i] += q * dt * adt / 2.0
-            A[d + i, d + i] += q * adt
+            a[r] = cv_mean_entry(Hm, h, r, dt, d)
+            for c in range(D):
+                A[r, c] = cv_cov_entry(Hc, h, r, c, dt, q, d)
+    else:
+        a = Hm[h].copy()
+        A = Hc[h].copy()
     s00 = A[0, 0] + V[k, 0, 0]
     s01 = 0.5 * (A[0, 1] + A[1, 0]) + V[k, 0, 1]
     s11 = A[1, 1] + V[k, 1, 1]

@@ -13,7 +13,8 @@ from __future__ import annotations
 import numpy as np
 
 from tracker.gating.exact import RADIUS_SLACK
-from tracker.gating.gate import check_covariances, gate_threshold
+from tracker.gating.gate import gate_threshold
+from tracker.types.reports import check_gaussians
 
 _BUCKET_RATIO = 2.0
 
@@ -63,15 +64,12 @@ def gate_bearings(track_means, track_covs, sensor, bearings, bearing_sigmas, *,
             raise ValueError(f"{name} has non-finite values at {np.flatnonzero(~np.isfinite(a))[:10]}")
     if np.any(sig <= 0):
         raise ValueError(f"bearing_sigmas must be > 0; bad at {np.flatnonzero(sig <= 0)[:10]}")
-    bad = ~np.all(np.isfinite(tm), axis=1)
-    if bad.any():
-        raise ValueError(f"track_means has non-finite values at indices {np.flatnonzero(bad)[:10]}")
     if (threshold is None) == (prob is None):
         raise ValueError("give exactly one of threshold= or prob=")
     gamma = gate_threshold(prob, 1) if prob is not None else float(threshold)
     if not (np.isfinite(gamma) and gamma >= 0):
         raise ValueError(f"threshold must be finite and >= 0, got {threshold!r}")
-    check_covariances("track_covs", np.ascontiguousarray(tc))
+    check_gaussians(tm, tc, "gate_bearings", means_name="track_means", covs_name="track_covs")
     beta, var = track_bearings(tm, tc, sensor)
     out_t, out_r = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
     for members in _buckets(var):

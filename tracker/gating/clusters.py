@@ -17,8 +17,9 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from tracker.gating.exact import lambda_max_bound, log_det
-from tracker.gating.gate import _validate, gate_threshold
+from tracker.gating.gate import gate_threshold
 from tracker.gating.reach import ReachBound, project, project_states, speed
+from tracker.gating.scene import Scene
 
 
 @dataclass(frozen=True)
@@ -88,9 +89,9 @@ def cluster_tracks(track_means, track_covs, *, min_separation: float,
     gamma = gate_threshold(prob, dim) if prob is not None else float(threshold)
     if not (np.isfinite(gamma) and gamma >= 0):
         raise ValueError(f"threshold must be finite and >= 0, got {threshold!r}")
-    # reuse gate()'s validation with a dummy empty report set
-    sc = _validate(tm, track_covs, np.zeros((0, dim)), np.zeros((0, dim, dim)),
-                   np.zeros(0) if tm.shape[1] == 2 * dim else None, track_times, process_noise)
+    # gate()'s validation of the tracks, with an empty report set
+    sc = Scene.validate(tm, track_covs, np.zeros((0, dim)), np.zeros((0, dim, dim)),
+                        np.zeros(0) if tm.shape[1] == 2 * dim else None, track_times, process_noise)
     n = tm.shape[0]
     t_mid = 0.5 * (t_lo + t_hi)
     reach = ReachBound.from_covs(sc.tcov, sc.tq, dim, sc.moving)
@@ -153,7 +154,7 @@ def gate_clusters(clusters: Clusters, report_means, report_covs, report_times=No
     moving = clusters.moving
     rt = np.zeros(len(rm)) if report_times is None else np.asarray(report_times, float)
     s = 2 * dim if moving else dim
-    _validate(np.zeros((0, s)), np.zeros((0, s, s)), rm, rc, rt if moving else None, 0.0, 0.0)
+    Scene.validate(np.zeros((0, s)), np.zeros((0, s, s)), rm, rc, rt if moving else None)
     if moving and (rt.min(initial=clusters.t_lo) < clusters.t_lo - 1e-9
                    or rt.max(initial=clusters.t_hi) > clusters.t_hi + 1e-9):
         raise ValueError("report_times must lie inside the scan the clusters were built for")

@@ -1,7 +1,9 @@
 """Paper 2's cost model (eq. A8) for choosing the number M_D of track-file projections across a
 scan, and whether to build the search grids on tracks (one per projection, eq. 5) or on reports
-binned by time (eq. 6). Its constants (seconds per unit of work) are measured on the running
-machine once, by timing gate() itself, and cached as JSON.
+binned by time (eq. 6). Its constants (seconds per unit of work) ship as :data:`DEFAULT_CONSTANTS`;
+:func:`tracker.gating.calibrate.calibrate` (``terrain-track calibrate``) measures them on another
+machine by timing gate() itself, and :meth:`CostConstants.read` loads the result for ``gate(...,
+constants=...)``. Nothing here reads or writes files on its own.
 
 With a grid hash the paper's log N factors (tree build and descent) become constants, and the
 terms of eq. A8 group by what is measurable:
@@ -18,17 +20,16 @@ deflated track grid ("tracks"), radius R0_max + a_max |dT| with |dT| uniform on 
 from __future__ import annotations
 
 import json
+import math
 import os
-import platform
-import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
-import numba
 import numpy as np
 
-from tracker.gating.exact import lambda_max_bound
+from common.atomic import atomic_paths
 from tracker.gating.reach import ReachBound, ball_volume, max_abs_dt
+from tracker.gating.scene import Scene
 
 _M_MAX = 128
 _SAMPLE = 500
@@ -45,6 +46,29 @@ class CostConstants:
     r_reports: float
     c_c: float
 
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
+                raise ValueError(f"CostConstants.{f.name} must be a positive number of seconds, got {v!r}")
+
+    @classmethod
+    def read(cls, path: str | os.PathLike) -> CostConstants:
+        """Constants from a JSON file written by :meth:`write` (``terrain-track calibrate``)."""
+        return cls(**json.loads(Path(path).read_text(encoding="utf-8")))
+
+    def write(self, path: str | os.PathLike) -> None:
+        """Write the constants as JSON, atomically (a failed write leaves the old file)."""
+        with atomic_paths(path) as (tmp,):
+            tmp.write_text(json.dumps(asdict(self), indent=1) + "\n", encoding="utf-8")
+
+
+DEFAULT_CONSTANTS = CostConstants(b_tracks=2.19e-7, b_reports=1.18e-7, r_tracks=5.33e-7,
+                                  r_reports=5.27e-7, c_c=1.04e-7)
+"""Measured by :func:`tracker.gating.calibrate.calibrate` on the development machine (2 cores,
+2 numba threads, numba 0.68.1). Only the choice of M_D and orientation depends on them, never the
+gated pairs; a machine whose costs differ a lot gates faster with its own (``terrain-track calibrate``)."""
+
 
 @dataclass(frozen=True)
 class Choice:
@@ -54,107 +78,6 @@ class Choice:
     on_reports: bool
     cost_tracks: np.ndarray
     cost_reports: np.ndarray
-
-
-def cache_path() -> Path:
-    """Where calibrated constants live ($TRACKER_COST_CACHE or the user cache directory)."""
-    env = os.environ.get("TRACKER_COST_CACHE")
-    if env:
-        return Path(env)
-    base = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache"))
-    return base / "terrain-prior-tracker" / "gating_costs.json"
-
-
-def _machine_key() -> str:
-    # the model version leads the key: constants from another model are not reused
-    return (f"grid-v6|{platform.node()}|{os.cpu_count()}|{numba.config.NUMBA_NUM_THREADS}|"
-            f"{numba.__version__}")
-
-
-_constants: CostConstants | None = None
-
-
-def constants(recalibrate: bool = False) -> CostConstants:
-    """Calibrated constants for this machine, measured once and cached on disk."""
-    global _constants
-    if _constants is not None and not recalibrate:
-        return _constants
-    path = cache_path()
-    key = _machine_key()
-    stored = {}
-    if path.is_file():
-        try:
-            stored = json.loads(path.read_text())
-        except (OSError, ValueError):
-            stored = {}
-    if key in stored and not recalibrate:
-        _constants = CostConstants(**stored[key])
-        return _constants
-    _constants = calibrate()
-    stored[key] = asdict(_constants)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(stored, indent=1))
-    os.replace(tmp, path)
-    return _constants
-
-
-def _best_of(fn, repeats: int = 3) -> float:
-    best = np.inf
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
-    return best
-
-
-def _calibration_scene(n: int, sigma: float, per_km2: float, seed: int = 0):
-    """Static-in-time CV tracks and reports uniform in a square, position sigma in metres."""
-    rng = np.random.default_rng(seed)
-    side = 1000.0 * np.sqrt(n / per_km2)
-    means = np.hstack([rng.uniform(0, side, (n, 2)), np.zeros((n, 2))])
-    covs = np.tile(np.diag([sigma**2, sigma**2, 1e-6, 1e-6]), (n, 1, 1))
-    rpos = rng.uniform(0, side, (n, 2))
-    rcov = np.tile(np.eye(2) * sigma**2, (n, 1, 1))
-    return means, covs, rpos, rcov, rng.uniform(0.0, 10.0, n)
-
-
-def calibrate(n: int = 100_000, rounds: int = 3) -> CostConstants:
-    """Measure the constants by timing gate() on synthetic 2-D scenes of n tracks and n reports
-    (per-object costs grow with n as arrays leave the caches, so n defaults to the design
-    point): without candidates at M = 1 and 8 in both orientations (slopes in M give b,
-    intercepts r), then with about 20 candidates per report for C_c. About 10 s."""
-    from tracker.gating import gate as gating
-
-    gamma = 9.21
-
-    def call(scene, m, orientation):
-        return lambda: gating.gate(*scene[:4], threshold=gamma, report_times=scene[4],
-                                   n_projections=m, orientation=orientation)
-
-    empty = _calibration_scene(n, 1e-3, 1.0)
-    full = _calibration_scene(n, 300.0, 4.0)
-    calls = {(m, o): call(empty, m, o) for m in (1, 8) for o in ("tracks", "reports")}
-    calls["full"] = call(full, 1, "reports")
-    for fn in calls.values():  # compile and warm caches
-        fn()
-    # round-robin, best of several: load changes on a shared machine hit every term alike
-    t = dict.fromkeys(calls, np.inf)
-    for _ in range(rounds):
-        for key, fn in calls.items():
-            t[key] = min(t[key], _best_of(fn, 1))
-    b_t = max((t[8, "tracks"] - t[1, "tracks"]) / 7 / n, 1e-12)
-    b_r = max((t[8, "reports"] - t[1, "reports"]) / 7 / n, 1e-12)
-    r_t = max(t[1, "tracks"] / n - b_t, 1e-12)
-    r_r = max(t[1, "reports"] / n - b_r, 1e-12)
-    sc = gating._validate(*full[:4], full[4], 0.0, 0.0)
-    reach = ReachBound.from_covs(sc.tcov, sc.tq, 2, True)
-    lam_r = lambda_max_bound(sc.rcov)
-    n_cand = expected_candidates(sc, reach, np.zeros(n), lam_r, gamma, 10.0, np.array([1.0]),
-                                 deflate=False)[0]
-    c_c = max(t["full"] - t[1, "reports"], 1e-12) / n_cand
-    return CostConstants(b_tracks=b_t, b_reports=b_r, r_tracks=r_t, r_reports=r_r,
-                         c_c=float(c_c))
 
 
 def expected_volume(m: np.ndarray, r0: np.ndarray, a: np.ndarray, tau: float,
@@ -186,7 +109,7 @@ def md0_closed_form(n_t: int, n_r: int, rho: float, a: float, tau: float, dim: i
     return float((dim * k2 / k1) ** (1.0 / (dim + 1)))
 
 
-def expected_candidates(sc, reach, spd: np.ndarray, lam_r: np.ndarray, gamma: float,
+def expected_candidates(sc: Scene, reach: ReachBound, spd: np.ndarray, lam_r: np.ndarray, gamma: float,
                         tau: float, m: np.ndarray, deflate: bool) -> np.ndarray:
     """Expected candidate pairs for each M in ``m`` (from a sample of tracks)."""
     n_t, n_r, dim = sc.tpos.shape[0], sc.rpos.shape[0], sc.dim
@@ -206,7 +129,8 @@ def expected_candidates(sc, reach, spd: np.ndarray, lam_r: np.ndarray, gamma: fl
     return n_t * n_r * vol / float(np.prod(extent + 2 * r0.mean()))
 
 
-def choose(sc, reach, spd: np.ndarray, lam_r: np.ndarray, gamma: float, tau: float) -> Choice:
+def choose(sc: Scene, reach: ReachBound, spd: np.ndarray, lam_r: np.ndarray, gamma: float, tau: float,
+           constants: CostConstants) -> Choice:
     """Pick M_D and the orientation minimising the predicted cost for a validated scene."""
     n_t, n_r = sc.tpos.shape[0], sc.rpos.shape[0]
     if tau <= 0.0:
@@ -214,7 +138,7 @@ def choose(sc, reach, spd: np.ndarray, lam_r: np.ndarray, gamma: float, tau: flo
     m = np.arange(1, min(_M_MAX, n_r) + 1).astype(float)
     cand_t = expected_candidates(sc, reach, spd, lam_r, gamma, tau, m, deflate=True)
     cand_r = expected_candidates(sc, reach, spd, lam_r, gamma, tau, m, deflate=False)
-    on_tracks, on_reports = predict(n_t, n_r, cand_t, cand_r, m, constants())
+    on_tracks, on_reports = predict(n_t, n_r, cand_t, cand_r, m, constants)
     i_t, i_r = int(np.argmin(on_tracks)), int(np.argmin(on_reports))
     if on_reports[i_r] <= on_tracks[i_t]:
         return Choice(int(m[i_r]), True, on_tracks, on_reports)

@@ -82,17 +82,6 @@ def lambda_max_bound(c):
 
 
 @njit(cache=True)
-def nonfinite_rows(a):
-    """Flags (N,) of rows of a 2-D array holding a NaN or an infinity."""
-    bad = np.zeros(a.shape[0], dtype=np.bool_)
-    for i in range(a.shape[0]):
-        for j in range(a.shape[1]):
-            if not np.isfinite(a[i, j]):
-                bad[i] = True
-    return bad
-
-
-@njit(cache=True)
 def log_det(c):
     """ln det of each symmetric positive-definite (N, d, d) matrix (closed form)."""
     n, dim = c.shape[0], c.shape[1]
@@ -105,55 +94,3 @@ def log_det(c):
             _, out[i] = sym_d2_logdet(c[i, 0, 0], c[i, 0, 1], c[i, 0, 2], c[i, 1, 1],
                                       c[i, 1, 2], c[i, 2, 2], 0.0, 0.0, 0.0, 3)
     return out
-
-
-@njit(cache=True)
-def _cholesky_ok(a, work):
-    """True when the symmetric matrix a (lower triangle read) has a Cholesky factor."""
-    dim = a.shape[0]
-    for j in range(dim):
-        s = a[j, j]
-        for k in range(j):
-            s -= work[j, k] * work[j, k]
-        if not s > 0.0:
-            return False
-        work[j, j] = math.sqrt(s)
-        for r in range(j + 1, dim):
-            t = a[r, j]
-            for k in range(j):
-                t -= work[r, k] * work[j, k]
-            work[r, j] = t / work[j, j]
-    return True
-
-
-@njit(cache=True)
-def bad_covariances(c, sym_rtol):
-    """Flags (N,) of matrices that are non-finite, asymmetric beyond ``sym_rtol`` or not PD."""
-    n, dim = c.shape[0], c.shape[1]
-    bad = np.zeros(n, dtype=np.bool_)
-    work = np.empty((dim, dim))
-    for i in range(n):
-        scale = 0.0
-        ok = True
-        for r in range(dim):
-            for s in range(dim):
-                x = c[i, r, s]
-                if not np.isfinite(x):
-                    ok = False
-                scale = max(scale, abs(x))
-        if ok:
-            for r in range(dim):
-                for s in range(r + 1, dim):
-                    if abs(c[i, r, s] - c[i, s, r]) > sym_rtol * scale:
-                        ok = False
-        if ok and dim <= 3:  # leading minors in closed form
-            v02 = c[i, 0, 2] if dim == 3 else 0.0
-            v12 = c[i, 1, 2] if dim == 3 else 0.0
-            v22 = c[i, 2, 2] if dim == 3 else 0.0
-            d2, _ = sym_d2_logdet(c[i, 0, 0], c[i, 0, 1], v02, c[i, 1, 1], v12, v22,
-                                  0.0, 0.0, 0.0, dim)
-            ok = np.isfinite(d2)
-        elif ok:
-            ok = _cholesky_ok(c[i], work)
-        bad[i] = not ok
-    return bad

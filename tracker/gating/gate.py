@@ -13,18 +13,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from typing import Protocol
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.stats import chi2
 
-from tracker.gating import costmodel
-from tracker.gating.exact import (
-    RADIUS_SLACK,
-    bad_covariances,
-    lambda_max_bound,
-    log_det,
-    nonfinite_rows,
-)
+from tracker.gating.costmodel import DEFAULT_CONSTANTS, Choice, CostConstants, choose
+from tracker.gating.exact import RADIUS_SLACK, lambda_max_bound, log_det
 from tracker.gating.grid import (
     build_grid,
     counting_order,
@@ -34,6 +30,7 @@ from tracker.gating.grid import (
     take_rows,
 )
 from tracker.gating.reach import ReachBound, max_abs_dt, speed
+from tracker.gating.scene import Scene
 
 _MAX_BUCKETS = 6
 
@@ -45,27 +42,25 @@ def gate_threshold(prob: float, dim: int) -> float:
     return float(chi2.ppf(prob, dim))
 
 
-@dataclass(frozen=True)
-class _Scene:
-    """Validated inputs in kernel layout (tracks always carry a velocity block when moving)."""
+class Gater(Protocol):
+    """Anything that returns the gated pairs like :func:`gate`: (track_idx, report_idx) int64
+    arrays sorted by (track, report), for static (N, d) or CV (N, 2d) tracks valid at
+    ``track_times`` (s) with process noise q (m²/s³), reports (M, d) at ``report_times`` (s), and
+    the gate d² <= ``threshold``."""
 
-    dim: int
-    moving: bool
-    tpos: np.ndarray
-    tvel: np.ndarray
-    tcov: np.ndarray
-    ttime: np.ndarray
-    tq: np.ndarray
-    rpos: np.ndarray
-    rcov: np.ndarray
-    rtime: np.ndarray
+    def __call__(self, track_means: ArrayLike, track_covs: ArrayLike, report_means: ArrayLike,
+                 report_covs: ArrayLike, threshold: float | None = None, *,
+                 report_times: ArrayLike | None = None, track_times: ArrayLike | float = 0.0,
+                 process_noise: ArrayLike | float = 0.0) -> tuple[np.ndarray, np.ndarray]: ...
 
 
-def gate(track_means, track_covs, report_means, report_covs, threshold: float | None = None, *,
-         prob: float | None = None, min_score: float | None = None, return_d2: bool = False,
-         report_times=None, track_times=0.0, process_noise=0.0,
-         n_projections: int | str = "auto", orientation: str = "auto",
-         buckets: int | str = "auto"):
+def gate(track_means: ArrayLike, track_covs: ArrayLike, report_means: ArrayLike,
+         report_covs: ArrayLike, threshold: float | None = None, *, prob: float | None = None,
+         min_score: float | None = None, return_d2: bool = False,
+         report_times: ArrayLike | None = None, track_times: ArrayLike | float = 0.0,
+         process_noise: ArrayLike | float = 0.0, n_projections: int | str = "auto",
+         orientation: str = "auto", buckets: int | str = "auto",
+         constants: CostConstants = DEFAULT_CONSTANTS):
     """Pairs (track_idx, report_idx) that pass the exact gate, sorted by (track, report).
 
     Static: track_means (N, d), track_covs (N, d, d), report_means (M, d), report_covs (M, d, d)
@@ -81,8 +76,35 @@ def gate(track_means, track_covs, report_means, report_covs, threshold: float | 
     binned by time and queries them with projected tracks, "tracks" builds one grid per
     projection on the tracks and queries it with reports (paper eq. 5 vs 6); "auto" asks the
     cost model. ``buckets``: radius buckets of the gridded set ("auto": only when radii spread).
+    ``constants``: the cost model's seconds per unit of work; the shipped defaults unless you
+    measured your machine (``terrain-track calibrate --out costs.json``, then
+    ``constants=CostConstants.read("costs.json")``). gate() itself never calibrates.
     Returns (track_idx, report_idx) int64 arrays, plus d^2 when ``return_d2``.
     """
+    scene = Scene.validate(track_means, track_covs, report_means, report_covs, report_times,
+                           track_times, process_noise)
+    return gate_checked(scene, threshold, prob=prob, min_score=min_score, return_d2=return_d2,
+                        n_projections=n_projections, orientation=orientation, buckets=buckets,
+                        constants=constants)
+
+
+def gate_unchecked(track_means: np.ndarray, track_covs: np.ndarray, report_means: np.ndarray,
+                   report_covs: np.ndarray, threshold: float | None = None, *,
+                   report_times: np.ndarray | None = None, track_times: np.ndarray | float = 0.0,
+                   process_noise: np.ndarray | float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """A :class:`Gater` for arrays the caller has validated already (the tracker's hypotheses and
+    checked reports): :func:`gate`'s pairs without checking the arrays again."""
+    return gate_checked(Scene.assume_valid(track_means, track_covs, report_means, report_covs, report_times,
+                                           track_times, process_noise), threshold)
+
+
+def gate_checked(sc: Scene, threshold: float | None = None, *, prob: float | None = None,
+                 min_score: float | None = None, return_d2: bool = False,
+                 n_projections: int | str = "auto", orientation: str = "auto",
+                 buckets: int | str = "auto", constants: CostConstants = DEFAULT_CONSTANTS):
+    """:func:`gate` on a scene whose arrays were validated already (:meth:`Scene.validate`, or
+    :meth:`Scene.assume_valid` for arrays the caller checked itself): the same pairs, without
+    checking the arrays again. Options as in :func:`gate`."""
     if orientation not in ("auto", "reports", "tracks"):
         raise ValueError(f"orientation must be 'auto', 'reports' or 'tracks', got {orientation!r}")
     if n_projections != "auto" and not (isinstance(n_projections, int | np.integer)
@@ -90,13 +112,11 @@ def gate(track_means, track_covs, report_means, report_covs, threshold: float | 
         raise ValueError(f"n_projections must be an int >= 1 or 'auto', got {n_projections!r}")
     if buckets != "auto" and not (isinstance(buckets, int | np.integer) and buckets >= 1):
         raise ValueError(f"buckets must be an int >= 1 or 'auto', got {buckets!r}")
-    sc = _validate(track_means, track_covs, report_means, report_covs, report_times,
-                   track_times, process_noise)
     gamma, w_logdet = _threshold(threshold, prob, min_score, sc.dim)
     nt, nr = sc.tpos.shape[0], sc.rpos.shape[0]
     if nt == 0 or nr == 0:
         return _result(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), return_d2)
-    plan = _plan(sc, gamma, w_logdet, n_projections, orientation)
+    plan = _plan(sc, gamma, w_logdet, n_projections, orientation, constants)
     sc, t_perm, r_perm = _spatially_sorted(sc, plan.on_reports)
     plan = replace(plan, bin_of_report=plan.bin_of_report[r_perm], reach=plan.reach.take(t_perm),
                    speed=plan.speed[t_perm], lam_r=plan.lam_r[r_perm],
@@ -115,7 +135,7 @@ def gate(track_means, track_covs, report_means, report_covs, threshold: float | 
     return _result(t_idx[order], r_idx[order], d2[order], return_d2)
 
 
-def _spatially_sorted(sc: _Scene, on_reports: bool) -> tuple[_Scene, np.ndarray, np.ndarray]:
+def _spatially_sorted(sc: Scene, on_reports: bool) -> tuple[Scene, np.ndarray, np.ndarray]:
     """The scene with the querying set in spatial order, and both permutations.
 
     Neighbouring queries then touch neighbouring cells and points: the kernels are bound by
@@ -157,75 +177,6 @@ def _threshold(threshold, prob, min_score, dim) -> tuple[float, float]:
     return -2.0 * math.log(min_score) - dim * math.log(2.0 * math.pi), 1.0
 
 
-def _as_float(name: str, x, ndim: int) -> np.ndarray:
-    a = np.ascontiguousarray(x, dtype=float)
-    if a.ndim != ndim:
-        raise ValueError(f"{name} must have {ndim} dimensions, got shape {a.shape}")
-    return a
-
-
-def _check_finite(name: str, a: np.ndarray) -> None:
-    bad = nonfinite_rows(a.reshape(a.shape[0], a[0].size if len(a) else 0))
-    if bad.any():
-        raise ValueError(f"{name} has non-finite values at indices {np.flatnonzero(bad)[:10]}")
-
-
-def check_covariances(name: str, c: np.ndarray) -> None:
-    """ValueError naming ``name`` and the bad indices unless every (d, d) matrix is finite,
-    symmetric and positive definite."""
-    if c.shape[0] == 0:
-        return
-    bad = bad_covariances(c, 1e-9)
-    if bad.any():
-        raise ValueError(f"{name} must be finite, symmetric and positive definite; bad at "
-                         f"indices {np.flatnonzero(bad)[:10]}")
-
-
-def _validate(track_means, track_covs, report_means, report_covs, report_times, track_times,
-              process_noise) -> _Scene:
-    tm = _as_float("track_means", track_means, 2)
-    tc = _as_float("track_covs", track_covs, 3)
-    rm = _as_float("report_means", report_means, 2)
-    rc = _as_float("report_covs", report_covs, 3)
-    dim = rm.shape[1]
-    if dim not in (2, 3):
-        raise ValueError(f"report_means must be (M, 2) or (M, 3), got shape {rm.shape}")
-    if rc.shape != (rm.shape[0], dim, dim):
-        raise ValueError(f"report_covs must have shape {(rm.shape[0], dim, dim)}, got {rc.shape}")
-    if tm.shape[1] not in (dim, 2 * dim):
-        raise ValueError(f"track_means must be (N, {dim}) or (N, {2 * dim}) for {dim}-D reports,"
-                         f" got shape {tm.shape}")
-    sd = tm.shape[1]
-    if tc.shape != (tm.shape[0], sd, sd):
-        raise ValueError(f"track_covs must have shape {(tm.shape[0], sd, sd)}, got {tc.shape}")
-    moving = sd == 2 * dim
-    nt, nr = tm.shape[0], rm.shape[0]
-    if moving and report_times is None:
-        raise ValueError("track_means carry velocities: report_times= (M,) is required")
-    for name, a in (("track_means", tm), ("report_means", rm)):
-        _check_finite(name, a)
-    check_covariances("track_covs", tc)
-    check_covariances("report_covs", rc)
-    rtime = np.zeros(nr)
-    ttime = np.zeros(nt)
-    tq = np.zeros(nt)
-    if moving:
-        rtime = _as_float("report_times", report_times, 1)
-        if rtime.shape != (nr,):
-            raise ValueError(f"report_times must have shape ({nr},), got {rtime.shape}")
-        _check_finite("report_times", rtime[:, None])
-        ttime = np.ascontiguousarray(np.broadcast_to(np.asarray(track_times, float), (nt,)))
-        _check_finite("track_times", ttime[:, None])
-        tq = np.ascontiguousarray(np.broadcast_to(np.asarray(process_noise, float), (nt,)))
-        bad = ~(np.isfinite(tq) & (tq >= 0.0))
-        if bad.any():
-            raise ValueError(f"process_noise must be finite and >= 0; bad at tracks "
-                             f"{np.flatnonzero(bad)[:10]}")
-    tvel = np.ascontiguousarray(tm[:, dim:]) if moving else np.zeros((nt, dim))
-    return _Scene(dim, moving, np.ascontiguousarray(tm[:, :dim]), tvel, tc, ttime, tq, rm, rc,
-                  rtime)
-
-
 @dataclass(frozen=True)
 class _Plan:
     """Time partition of the scan: m bins of half-width w (s), centre times, bin of each report."""
@@ -241,10 +192,20 @@ class _Plan:
     gamma_r: np.ndarray   # per-report bound on the pair's gamma (score form), else gamma
     gamma_t: np.ndarray   # per-track bound on the pair's gamma (static score form), else inf
     coord_slack: float
-    choice: costmodel.Choice | None = None  # the cost model's prediction, when asked
+    choice: Choice | None = None  # the cost model's prediction, when asked
 
 
-def _plan(sc: _Scene, gamma: float, w_logdet: float, n_projections, orientation) -> _Plan:
+def plan_choice(sc: Scene, threshold: float,
+                constants: CostConstants = DEFAULT_CONSTANTS) -> Choice:
+    """The cost model's pick (M_D, orientation, predicted seconds per M) for a moving scene gated
+    at d² <= ``threshold``, as ``gate(..., n_projections="auto", orientation="auto")`` makes it."""
+    if not sc.moving:
+        raise ValueError("plan_choice: static tracks have a single projection; pass (N, 2d) CV tracks")
+    return _plan(sc, threshold, 0.0, "auto", "auto", constants).choice
+
+
+def _plan(sc: Scene, gamma: float, w_logdet: float, n_projections, orientation,
+          constants: CostConstants) -> _Plan:
     lam_r = lambda_max_bound(sc.rcov)
     reach = ReachBound.from_covs(sc.tcov, sc.tq, sc.dim, sc.moving)
     spd = speed(np.hstack([sc.tpos, sc.tvel]), sc.dim) if sc.moving else np.zeros(len(sc.tpos))
@@ -265,7 +226,7 @@ def _plan(sc: _Scene, gamma: float, w_logdet: float, n_projections, orientation)
     tau = t_hi - t_lo
     choice = None
     if n_projections == "auto" or orientation == "auto":
-        choice = costmodel.choose(sc, reach, spd, lam_r, float(np.max(gamma_r)), tau)
+        choice = choose(sc, reach, spd, lam_r, float(np.max(gamma_r)), tau, constants)
         m = choice.m if n_projections == "auto" else int(n_projections)
         on_reports = choice.on_reports if orientation == "auto" else orientation == "reports"
     else:
@@ -297,7 +258,7 @@ def _slack(r: np.ndarray, coord_slack: float) -> np.ndarray:
     return r * (1.0 + RADIUS_SLACK) + coord_slack
 
 
-def _gate_bin(sc: _Scene, plan: _Plan, k: int, reports: np.ndarray, gamma: float,
+def _gate_bin(sc: Scene, plan: _Plan, k: int, reports: np.ndarray, gamma: float,
               w_logdet: float, buckets):
     """Exact pairs between every track and the reports of time bin k."""
     tracks = np.arange(sc.tpos.shape[0])

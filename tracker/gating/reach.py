@@ -12,52 +12,49 @@ import numpy as np
 from numba import njit
 
 from tracker.gating.exact import lambda_max_bound
+from tracker.models.motion import cv_cov_entry, cv_mean_entry, cv_predict
 
 
 @njit(cache=True, inline="always")
 def projected_cov_entry(tcov, i, r, s, dt, q, dim, moving):
-    """Entry (r, s) of track i's position covariance projected by dt seconds.
-
-    P_pos(dt) = Ppp + dt (Ppv + Ppv^T) + dt^2 Pvv + q |dt|^3 / 3 I (white-noise acceleration).
-    """
-    v = tcov[i, r, s]
+    """Entry (r, s) of track i's position covariance projected by dt seconds: the position block
+    of F P Fᵀ + Q(dt) (:func:`tracker.models.motion.cv_cov_entry`), or P itself for static tracks."""
     if moving:
-        v += dt * (tcov[i, r, dim + s] + tcov[i, s, dim + r]) + dt * dt * tcov[i, dim + r, dim + s]
-        if r == s:
-            v += q * abs(dt) ** 3 / 3.0
-    return v
+        return cv_cov_entry(tcov, i, r, s, dt, q, dim)
+    return tcov[i, r, s]
+
+
+def _cv_arrays(means, covs, dt, q) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    n = means.shape[0]
+    return (np.ascontiguousarray(means, dtype=float), np.ascontiguousarray(covs, dtype=float),
+            np.ascontiguousarray(np.broadcast_to(np.asarray(dt, dtype=float), (n,))),
+            np.ascontiguousarray(np.broadcast_to(np.asarray(q, dtype=float), (n,))))
 
 
 def project(means: np.ndarray, covs: np.ndarray, dt: np.ndarray | float,
             q: np.ndarray | float, dim: int) -> tuple[np.ndarray, np.ndarray]:
     """Positions (N, dim) and position covariances (N, dim, dim) of CV states moved by dt (s)."""
-    dt = np.broadcast_to(np.asarray(dt, dtype=float), (means.shape[0],))
-    q = np.broadcast_to(np.asarray(q, dtype=float), (means.shape[0],))
-    pos = means[:, :dim] + dt[:, None] * means[:, dim:]
-    ppv = covs[:, :dim, dim:]
-    cov = (covs[:, :dim, :dim] + dt[:, None, None] * (ppv + ppv.transpose(0, 2, 1))
-           + (dt * dt)[:, None, None] * covs[:, dim:, dim:])
-    cov = cov + (q * np.abs(dt) ** 3 / 3.0)[:, None, None] * np.eye(dim)
+    return _project_positions(*_cv_arrays(means, covs, dt, q), dim)
+
+
+@njit(cache=True)
+def _project_positions(means, covs, dt, q, dim):
+    n = means.shape[0]
+    pos = np.empty((n, dim))
+    cov = np.empty((n, dim, dim))
+    for i in range(n):
+        for r in range(dim):
+            pos[i, r] = cv_mean_entry(means, i, r, dt[i], dim)
+            for s in range(dim):
+                cov[i, r, s] = cv_cov_entry(covs, i, r, s, dt[i], q[i], dim)
     return pos, cov
 
 
 def project_states(means: np.ndarray, covs: np.ndarray, dt: np.ndarray | float,
                    q: np.ndarray | float, dim: int) -> tuple[np.ndarray, np.ndarray]:
-    """Full CV states (N, 2d) and covariances (N, 2d, 2d) moved by dt (s): F x, F P F^T + Q with
-    Q = q [[|dt|^3/3, |dt|^2/2], [|dt|^2/2, |dt|]] (x) I_d."""
-    n = means.shape[0]
-    dt = np.broadcast_to(np.asarray(dt, dtype=float), (n,))
-    a = np.abs(dt)
-    q = np.broadcast_to(np.asarray(q, dtype=float), (n,))
-    eye = np.eye(dim)
-    f = np.tile(np.eye(2 * dim), (n, 1, 1))
-    f[:, :dim, dim:] = dt[:, None, None] * eye
-    qm = np.zeros((n, 2 * dim, 2 * dim))
-    qm[:, :dim, :dim] = (q * a**3 / 3)[:, None, None] * eye
-    qm[:, :dim, dim:] = qm[:, dim:, :dim] = (q * a**2 / 2)[:, None, None] * eye
-    qm[:, dim:, dim:] = (q * a)[:, None, None] * eye
-    return (np.einsum("nij,nj->ni", f, means),
-            np.einsum("nij,njk,nlk->nil", f, covs, f) + qm)
+    """Full CV states (N, 2d) and covariances (N, 2d, 2d) moved by dt (s): F x and F P Fᵀ + Q(dt),
+    Q's cross term signed (see :mod:`tracker.models.motion`)."""
+    return cv_predict(*_cv_arrays(means, covs, dt, q), dim)
 
 
 @dataclass(frozen=True)

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 from numba import njit
@@ -33,6 +34,16 @@ KIND_EXP = 0
 KIND_POISSON = 1
 _LOG_EPS = -60.0 * math.log(2.0)
 _MAX_TERMS = 50_000_000
+
+
+class SModel(Protocol):
+    """An S(n, k) model as the association uses it: ``code`` = (kind, parameter) selects the
+    formula in the numba kernels (:func:`log_s_code`, :func:`log_s_ratio_code`)."""
+
+    @property
+    def code(self) -> tuple[int, float]:
+        """(KIND_EXP or KIND_POISSON, the model's parameter)."""
+        ...
 
 
 @dataclass(frozen=True)
@@ -65,8 +76,6 @@ class PoissonS:
     def code(self) -> tuple[int, float]:
         return KIND_POISSON, float(self.mu)
 
-
-SModel = ExpS | PoissonS
 
 
 @njit(cache=True, inline="always")

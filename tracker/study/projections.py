@@ -14,9 +14,10 @@ from collections.abc import Sequence
 import numpy as np
 import pandas as pd
 
-from tracker.gating import costmodel
-from tracker.gating import gate as gating
+from tracker.gating.costmodel import DEFAULT_CONSTANTS, Choice, CostConstants
+from tracker.gating.gate import gate, plan_choice
 from tracker.gating.reach import project
+from tracker.gating.scene import Scene
 
 
 def brute_force_pairs(track_means, track_covs, report_means, report_covs, report_times=None, *,
@@ -50,13 +51,13 @@ def brute_force_pairs(track_means, track_covs, report_means, report_covs, report
 
 
 def predicted_choice(track_means, track_covs, report_means, report_covs, report_times, *,
-                     threshold: float, track_times: float = 0.0, process_noise: float = 0.0) -> costmodel.Choice:
+                     threshold: float, track_times: float = 0.0, process_noise: float = 0.0,
+                     constants: CostConstants = DEFAULT_CONSTANTS) -> Choice:
     """The cost model's pick for a moving scene, through the same planning path gate() takes:
-    ``m``, ``on_reports`` and the predicted seconds per M = 1, 2, ... for both orientations."""
-    sc = gating._validate(track_means, track_covs, report_means, report_covs, report_times, track_times, process_noise)
-    if not sc.moving:
-        raise ValueError("predicted_choice: static tracks have a single projection; pass (N, 2d) CV tracks")
-    return gating._plan(sc, threshold, 0.0, "auto", "auto").choice
+    ``m``, ``on_reports`` and the predicted seconds per M = 1, 2, ... for both orientations, with
+    the cost ``constants`` gate() is given."""
+    return plan_choice(Scene.validate(track_means, track_covs, report_means, report_covs, report_times,
+                                      track_times, process_noise), threshold, constants)
 
 
 def measure_projections(track_means, track_covs, report_means, report_covs, report_times, *,
@@ -69,9 +70,9 @@ def measure_projections(track_means, track_covs, report_means, report_covs, repo
             best, n_pairs = np.inf, -1
             for _ in range(repeats):
                 t0 = time.perf_counter()
-                t_idx, _ = gating.gate(track_means, track_covs, report_means, report_covs, threshold=threshold,
-                                       report_times=report_times, process_noise=process_noise,
-                                       n_projections=int(m), orientation=orientation)
+                t_idx, _ = gate(track_means, track_covs, report_means, report_covs, threshold=threshold,
+                                report_times=report_times, process_noise=process_noise,
+                                n_projections=int(m), orientation=orientation)
                 best = min(best, time.perf_counter() - t0)
                 n_pairs = int(t_idx.size)
             rows.append({"orientation": orientation, "m": int(m), "seconds": best, "pairs": n_pairs})

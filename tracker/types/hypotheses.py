@@ -1,4 +1,5 @@
-"""Hypothesised targets p̂_q(y) = c_q⁻¹ G(a_q, A_q, y) r(Hy) kept as growable arrays, and their motion models.
+"""Hypothesised targets p̂_q(y) = c_q⁻¹ G(a_q, A_q, y) r(Hy) kept as growable arrays (their motion models
+are in :mod:`tracker.models.motion`).
 
 State vectors are positions (x, y) in metres for the static model, (x, y, vx, vy) in metres and m/s
 for constant velocity; covariances are in the matching units (m², m²/s, m²/s²). ``log_c`` is
@@ -8,75 +9,7 @@ density per m²). Only positions meet the prior: r applies to H y = (x, y).
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass
-
 import numpy as np
-
-MOTION_STATIC = 0
-MOTION_CV = 1
-
-
-@dataclass(frozen=True)
-class Static:
-    """Targets do not move (paper 1): the state is the position."""
-
-    pos_dim: int = 2
-
-    @property
-    def state_dim(self) -> int:
-        return self.pos_dim
-
-    @property
-    def code(self) -> tuple[int, float, float]:
-        """(kind, q, velocity_std) for the numba kernels."""
-        return MOTION_STATIC, 0.0, 0.0
-
-
-@dataclass(frozen=True)
-class ConstantVelocity:
-    """Nearly-constant velocity (paper 1, section 7): white-noise acceleration of spectral density
-    ``q`` (m²/s³); a new hypothesis starts at zero velocity with standard deviation ``velocity_std``
-    (m/s) per axis, uncorrelated with its position."""
-
-    q: float = 0.1
-    velocity_std: float = 10.0
-    pos_dim: int = 2
-
-    def __post_init__(self) -> None:
-        if not (math.isfinite(self.q) and self.q >= 0):
-            raise ValueError(f"ConstantVelocity.q must be finite and >= 0 m^2/s^3, got {self.q}")
-        if not (math.isfinite(self.velocity_std) and self.velocity_std > 0):
-            raise ValueError(f"ConstantVelocity.velocity_std must be positive m/s, got {self.velocity_std}")
-
-    @property
-    def state_dim(self) -> int:
-        return 2 * self.pos_dim
-
-    @property
-    def code(self) -> tuple[int, float, float]:
-        return MOTION_CV, float(self.q), float(self.velocity_std)
-
-    def predict(self, means: np.ndarray, covs: np.ndarray, dt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Kalman time update of (N, 2d) states by dt (N,) seconds: x' = F x, P' = F P Fᵀ + Q(dt),
-        F = [[I, dt I], [0, I]], Q = q [[dt³/3 I, dt²/2 I], [dt²/2 I, dt I]]."""
-        d = self.pos_dim
-        dt = np.asarray(dt, dtype=np.float64)
-        n = means.shape[0]
-        F = np.broadcast_to(np.eye(2 * d), (n, 2 * d, 2 * d)).copy()
-        F[:, :d, d:] = dt[:, None, None] * np.eye(d)
-        eye = np.eye(d)
-        Q = np.empty((n, 2 * d, 2 * d))
-        adt = np.abs(dt)[:, None, None]
-        Q[:, :d, :d] = adt**3 / 3.0 * eye
-        Q[:, :d, d:] = Q[:, d:, :d] = np.sign(dt)[:, None, None] * adt**2 / 2.0 * eye
-        Q[:, d:, d:] = adt * eye
-        m = np.einsum("nij,nj->ni", F, means)
-        P = F @ covs @ F.transpose(0, 2, 1) + self.q * Q
-        return m, 0.5 * (P + P.transpose(0, 2, 1))
-
-
-MotionModel = Static | ConstantVelocity
 
 
 class Hypotheses:

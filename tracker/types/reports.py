@@ -11,40 +11,82 @@ import numba as nb
 import numpy as np
 
 
-def check_gaussians(means: np.ndarray, covs: np.ndarray, what: str) -> tuple[np.ndarray, np.ndarray]:
-    """Validate (N, d) means and (N, d, d) symmetric positive-definite covariances.
+def check_gaussians(means: np.ndarray, covs: np.ndarray, what: str, *, means_name: str = "means",
+                    covs_name: str = "covariances") -> tuple[np.ndarray, np.ndarray]:
+    """Validate (N, d) means and (N, d, d) symmetric positive-definite covariances: the tracker's one
+    positive-definite check (reports, integrators, gating).
 
-    Raises ``ValueError`` naming ``what`` and the offending indices.
+    Returns both as float64 arrays. Raises ``ValueError`` naming ``what``, the offending argument
+    (``means_name`` or ``covs_name``) and the offending indices.
     """
     means = np.asarray(means, dtype=np.float64)
     covs = np.asarray(covs, dtype=np.float64)
     if means.ndim != 2 or covs.ndim != 3 or covs.shape != (means.shape[0], means.shape[1], means.shape[1]):
-        raise ValueError(f"{what}: means must be (N, d) and covariances (N, d, d); got {means.shape} and {covs.shape}")
+        raise ValueError(f"{what}: {means_name} must be (N, d) and {covs_name} (N, d, d); got {means.shape} "
+                         f"and {covs.shape}")
     if means.shape[1] == 2:
         flags = _flags_2d(np.ascontiguousarray(means), np.ascontiguousarray(covs))
     else:
-        flags = _flags(means, covs)
-    for bit, words in enumerate(("non-finite means", "non-finite covariances", "covariances not symmetric", "covariances not positive definite")):
+        flags = _flags(np.ascontiguousarray(means), np.ascontiguousarray(covs))
+    problems = (f"non-finite {means_name}", f"non-finite {covs_name}", f"{covs_name} not symmetric",
+                f"{covs_name} not positive definite")
+    for bit, words in enumerate(problems):
         bad = np.flatnonzero(flags == bit + 1)
         if bad.size:
             raise ValueError(f"{what}: {words} at indices {bad[:10].tolist()}")
     return means, covs
 
 
+@nb.njit(cache=True)
+def _cholesky_ok(a: np.ndarray, work: np.ndarray) -> bool:
+    """True when the symmetric matrix ``a`` (lower triangle read) has a Cholesky factor, i.e. is
+    positive definite; ``work`` (d, d) receives the factor."""
+    dim = a.shape[0]
+    for j in range(dim):
+        s = a[j, j]
+        for k in range(j):
+            s -= work[j, k] * work[j, k]
+        if not s > 0.0:
+            return False
+        work[j, j] = np.sqrt(s)
+        for r in range(j + 1, dim):
+            t = a[r, j]
+            for k in range(j):
+                t -= work[r, k] * work[j, k]
+            work[r, j] = t / work[j, j]
+    return True
+
+
+@nb.njit(cache=True)
 def _flags(means: np.ndarray, covs: np.ndarray) -> np.ndarray:
-    """Per Gaussian: 0 fine, 1 non-finite mean, 2 non-finite covariance, 3 asymmetric, 4 not positive definite."""
-    flags = np.zeros(means.shape[0], dtype=np.int8)
-    finite_c = np.isfinite(covs).all(axis=(1, 2))
-    scale = np.abs(np.where(finite_c[:, None, None], covs, 0.0)).max(axis=(1, 2), initial=0.0)
-    asym = np.abs(covs - covs.transpose(0, 2, 1)).max(axis=(1, 2), initial=0.0)
-    ok = finite_c & ~(asym > 1e-9 * np.maximum(scale, 1e-300))
-    eig_min = np.full(means.shape[0], np.nan)
-    if ok.any():
-        eig_min[ok] = np.linalg.eigvalsh(covs[ok])[:, 0]
-    flags[~(eig_min > 0)] = 4
-    flags[~ok & finite_c] = 3
-    flags[~finite_c] = 2
-    flags[~np.isfinite(means).all(axis=1)] = 1
+    """Per Gaussian: 0 fine, 1 non-finite mean, 2 non-finite covariance, 3 asymmetric beyond 1e-9 of
+    its largest entry, 4 not positive definite (no Cholesky factor); the first that applies."""
+    n, d = means.shape
+    flags = np.zeros(n, dtype=np.int8)
+    work = np.empty((d, d))
+    for i in range(n):
+        ok = True
+        for r in range(d):
+            ok = ok and np.isfinite(means[i, r])
+        if not ok:
+            flags[i] = 1
+            continue
+        scale = 0.0
+        for r in range(d):
+            for c in range(d):
+                ok = ok and np.isfinite(covs[i, r, c])
+                scale = max(scale, abs(covs[i, r, c]))
+        if not ok:
+            flags[i] = 2
+            continue
+        asym = 0.0
+        for r in range(d):
+            for c in range(r + 1, d):
+                asym = max(asym, abs(covs[i, r, c] - covs[i, c, r]))
+        if asym > 1e-9 * max(scale, 1e-300):
+            flags[i] = 3
+        elif not _cholesky_ok(covs[i], work):
+            flags[i] = 4
     return flags
 
 

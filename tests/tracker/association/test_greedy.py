@@ -18,8 +18,8 @@ from pipeline.gis.grid import Grid
 from pipeline.prior.terrain import TerrainPrior
 from tracker.association.greedy import Tracker, associate, perfect_estimate
 from tracker.integrate import integrate
+from tracker.models.motion import ConstantVelocity
 from tracker.models.sfunc import ExpS, PoissonS, log_s
-from tracker.types.hypotheses import ConstantVelocity
 from tracker.types.reports import Reports
 
 GOLDEN = Path(__file__).parent / "golden" / "association.json"

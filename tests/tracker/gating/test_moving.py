@@ -9,7 +9,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from tests.tracker.gating.test_oracle import assert_same_pairs, brute_force, random_covs
-from tracker.gating.gate import gate
+from tracker.gating.gate import gate, gate_checked
+from tracker.gating.scene import Scene
 
 
 def _moving_scene(seed, nt, nr, dim, cond, vmax, scan, q):
@@ -77,3 +78,19 @@ def test_moving_input_errors():
     with pytest.raises(ValueError, match="track_times"):
         gate(tm, tc, rm, rc, threshold=1.0, report_times=np.zeros(3),
              track_times=np.array([0.0, np.inf]))
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31), nt=st.integers(0, 25), nr=st.integers(0, 25),
+       dim=st.sampled_from([2, 3]), moving=st.booleans())
+def test_checked_path_gives_the_same_pairs(seed, nt, nr, dim, moving):
+    """gate_checked on Scene.assume_valid (callers holding validated arrays) equals gate()."""
+    tm, tc, rm, rc, rt, tt, q = _moving_scene(seed, nt, nr, dim, 1e3, 30.0, 5.0, 1.0)
+    if not moving:
+        tm, tc, rt, tt, q = tm[:, :dim], np.ascontiguousarray(tc[:, :dim, :dim]), None, 0.0, 0.0
+    want = gate(tm, tc, rm, rc, threshold=9.0, return_d2=True, report_times=rt, track_times=tt,
+                process_noise=q)
+    for scene in (Scene.validate(tm, tc, rm, rc, rt, tt, q), Scene.assume_valid(tm, tc, rm, rc, rt, tt, q)):
+        got = gate_checked(scene, threshold=9.0, return_d2=True)
+        for a, b in zip(got, want, strict=True):
+            np.testing.assert_array_equal(a, b)

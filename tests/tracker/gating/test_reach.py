@@ -30,8 +30,9 @@ def test_project_matches_transition_matrices(seed, dim, q):
         f = np.eye(2 * dim)
         f[:dim, dim:] = dt[i] * np.eye(dim)
         a = abs(dt[i])
-        qm = q * np.block([[a**3 / 3 * np.eye(dim), a**2 / 2 * np.eye(dim)],
-                           [a**2 / 2 * np.eye(dim), a * np.eye(dim)]])
+        # the cross term keeps dt's sign (retrodiction: see tracker.models.motion)
+        qm = q * np.block([[a**3 / 3 * np.eye(dim), dt[i] * a / 2 * np.eye(dim)],
+                           [dt[i] * a / 2 * np.eye(dim), a * np.eye(dim)]])
         full = f @ p[i] @ f.T + qm
         np.testing.assert_allclose(pos[i], (f @ x[i])[:dim], rtol=1e-12, atol=1e-9)
         np.testing.assert_allclose(cov[i], full[:dim, :dim], rtol=1e-10, atol=1e-9)
@@ -107,15 +108,17 @@ def test_predicted_cost_trades_projections_against_candidates():
         assert int(np.argmin(cost)) == 0  # too few candidates to pay for a second projection
 
 
-def test_constants_are_cached_on_disk(tmp_path, monkeypatch):
+def test_constants_round_trip_through_json(tmp_path):
     path = tmp_path / "costs.json"
-    monkeypatch.setenv("TRACKER_COST_CACHE", str(path))
-    monkeypatch.setattr(costmodel, "_constants", None)
-    calls = []
-    fake = costmodel.CostConstants(1e-7, 2e-8, 3e-8, 4e-8, 5e-7)
-    monkeypatch.setattr(costmodel, "calibrate", lambda: calls.append(1) or fake)
-    assert costmodel.constants() == fake
-    stored = json.loads(path.read_text())
-    assert list(stored.values()) == [fake.__dict__]
-    monkeypatch.setattr(costmodel, "_constants", None)
-    assert costmodel.constants() == fake and calls == [1]  # read back, not recalibrated
+    c = costmodel.CostConstants(1e-7, 2e-8, 3e-8, 4e-8, 5e-7)
+    c.write(path)
+    assert json.loads(path.read_text()) == c.__dict__
+    assert costmodel.CostConstants.read(path) == c
+    assert [p.name for p in tmp_path.iterdir()] == ["costs.json"]  # no temporary left behind
+
+
+def test_constants_must_be_positive_seconds():
+    with pytest.raises(ValueError, match="c_c"):
+        costmodel.CostConstants(1e-7, 2e-8, 3e-8, 4e-8, -5e-7)
+    with pytest.raises(ValueError, match="b_tracks"):
+        costmodel.CostConstants(float("nan"), 2e-8, 3e-8, 4e-8, 5e-7)

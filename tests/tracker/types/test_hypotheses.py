@@ -1,14 +1,12 @@
-"""Hypotheses arrays against a plain Python list model; the constant-velocity prediction against
-explicit F and Q matrices."""
+"""Hypotheses arrays against a plain Python list model."""
 
 from __future__ import annotations
 
 import numpy as np
-import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from tracker.types.hypotheses import ConstantVelocity, Hypotheses
+from tracker.types.hypotheses import Hypotheses
 
 
 @settings(max_examples=25, deadline=None)
@@ -39,25 +37,3 @@ def test_append_and_fuse_match_a_list_model(ops):
     np.testing.assert_array_equal(copy.counts, H.counts)
     copy.fuse(np.array([0]), H.means[:1] + 1, H.covs[:1], H.log_c[:1], H.times[:1])
     assert not np.array_equal(copy.means[0], H.means[0])  # a copy, not a view
-
-
-def test_constant_velocity_prediction_matches_matrices():
-    rng = np.random.default_rng(0)
-    motion = ConstantVelocity(q=0.3, velocity_std=4.0)
-    L = rng.normal(size=(5, 4, 4))
-    P = L @ L.transpose(0, 2, 1) + np.eye(4)
-    x = rng.normal(size=(5, 4))
-    dt = np.array([0.0, 1.0, 2.5, 10.0, 0.1])
-    m, C = motion.predict(x, P, dt)
-    for i, d in enumerate(dt):
-        F = np.block([[np.eye(2), d * np.eye(2)], [np.zeros((2, 2)), np.eye(2)]])
-        Q = 0.3 * np.block([[d**3 / 3 * np.eye(2), d**2 / 2 * np.eye(2)], [d**2 / 2 * np.eye(2), d * np.eye(2)]])
-        np.testing.assert_allclose(m[i], F @ x[i], rtol=1e-12)
-        np.testing.assert_allclose(C[i], F @ P[i] @ F.T + Q, rtol=1e-12)
-
-
-def test_bad_motion_parameters():
-    with pytest.raises(ValueError, match="q"):
-        ConstantVelocity(q=-1.0)
-    with pytest.raises(ValueError, match="velocity_std"):
-        ConstantVelocity(velocity_std=0.0)
