@@ -110,7 +110,7 @@ def add_experiment_parser(sub) -> None:
 
 
 def cmd_simulate(args: argparse.Namespace) -> None:
-    from pipeline.prior.terrain import TerrainPrior
+    from pipeline.prior import TerrainPrior
     from tracker.io.reports import write_reports, write_targets
     from tracker.study.simulate import simulate
 
@@ -135,7 +135,7 @@ def add_simulate_parser(sub) -> None:
 
 
 def cmd_show(args: argparse.Namespace) -> None:
-    from pipeline.prior.terrain import TerrainPrior
+    from pipeline.prior import TerrainPrior
     from tracker.io.reports import read_reports, read_targets
     from tracker.io.tracks import read_tracks
     from tracker.study.plots import tracks_figure

@@ -6,12 +6,12 @@ from pathlib import Path
 
 from rasterio.crs import CRS
 
-from pipeline.prior.terrain import TerrainPrior
+from pipeline.prior import TerrainPrior
 from tracker.association.greedy import AssociationResult, associate
 from tracker.io.reports import read_reports
 from tracker.io.tracks import write_assignments, write_tracks
+from tracker.models.motion import MotionModel
 from tracker.models.sfunc import ExpS, SModel
-from tracker.types.hypotheses import MotionModel
 
 
 def track_files(

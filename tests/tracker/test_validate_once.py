@@ -13,9 +13,9 @@ from pipeline.gis.grid import Grid
 from pipeline.prior.terrain import TerrainPrior
 from tracker.association.greedy import associate
 from tracker.integrate import integrate, integrate_checked
+from tracker.models.motion import ConstantVelocity
 from tracker.run import track_files
 from tracker.types import reports as reports_module
-from tracker.types.hypotheses import ConstantVelocity
 from tracker.types.reports import Reports
 
 

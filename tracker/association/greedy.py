@@ -57,7 +57,7 @@ from typing import TYPE_CHECKING
 import numba
 import numpy as np
 
-from pipeline.prior.terrain import TerrainPrior
+from pipeline.prior import TerrainPrior
 from tracker.association.walk import (
     CONFLICT,
     DONE,

@@ -18,7 +18,7 @@ from typing import Literal, Protocol
 
 import numpy as np
 
-from pipeline.prior.terrain import TerrainPrior
+from pipeline.prior import TerrainPrior
 from tracker.integrate import scalespace
 from tracker.integrate.reference import covered_mass, reference_integrate
 from tracker.integrate.terraces import (

@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import ndtr
 
-from pipeline.prior.terrain import TerrainPrior
+from pipeline.prior import TerrainPrior
 from tracker.integrate.terraces import pixel_gaussians
 from tracker.types.reports import check_gaussians
 

@@ -35,7 +35,7 @@ import numba as nb
 import numpy as np
 from scipy.special import ndtr
 
-from pipeline.prior.terrain import TerrainPrior
+from pipeline.prior import TerrainPrior
 
 FAST = {"nsz", "arcp", "contract", "afn", "reassoc"}
 """LLVM fast-math flags for the kernels: fused multiply-adds and reassociation (~30 % faster),

@@ -42,7 +42,7 @@ from typing import Literal
 import numba as nb
 import numpy as np
 
-from pipeline.prior.terrain import TerrainPrior, sat_rect
+from pipeline.prior import TerrainPrior, sat_rect
 
 N_TERRACES = 24
 """Default number of terraces (ellipses), from the accuracy study in docs/terrace.md."""

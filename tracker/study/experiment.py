@@ -29,7 +29,7 @@ import pandas as pd
 from tqdm.auto import tqdm
 
 from common.atomic import atomic_paths
-from pipeline.prior.terrain import TerrainPrior
+from pipeline.prior import TerrainPrior
 from tracker.association.greedy import associate, perfect_estimate
 from tracker.integrate import METHODS, Integrator, integrate_checked
 from tracker.models.sfunc import ExpS, PoissonS, SModel

@@ -17,7 +17,7 @@ import numpy as np
 import pandas as pd
 from tqdm.auto import tqdm
 
-from pipeline.prior.terrain import TerrainPrior
+from pipeline.prior import TerrainPrior
 from tracker.study.compare import best_tau_index, prob_better
 from tracker.study.experiment import VARIANTS, ExperimentConfig, run_experiment, score_matrix
 from tracker.study.simulate import AirborneSensor, simulate

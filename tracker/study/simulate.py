@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.prior.terrain import TerrainPrior
+from pipeline.prior import TerrainPrior
 from tracker.types.reports import Reports
 
 Bounds = tuple[float, float, float, float]  # (xmin, ymin, xmax, ymax), metres

@@ -17,7 +17,7 @@ from distributed import Client, as_completed
 from tqdm.auto import tqdm
 
 from common.dask import using_client
-from pipeline.prior.terrain import TerrainPrior
+from pipeline.prior import TerrainPrior
 from tracker.study.experiment import ExperimentConfig, run_dataset, summarise, write_outputs
 
 
