@@ -12,7 +12,7 @@ import numpy as np
 from numba import njit
 
 from tracker.gating.exact import lambda_max_bound
-from tracker.models.motion import cv_cov_entry, cv_mean_entry, cv_predict
+from tracker.models.motion import cv_cov_entry, cv_predict
 
 
 @njit(cache=True, inline="always")
@@ -34,20 +34,8 @@ def _cv_arrays(means, covs, dt, q) -> tuple[np.ndarray, np.ndarray, np.ndarray, 
 def project(means: np.ndarray, covs: np.ndarray, dt: np.ndarray | float,
             q: np.ndarray | float, dim: int) -> tuple[np.ndarray, np.ndarray]:
     """Positions (N, dim) and position covariances (N, dim, dim) of CV states moved by dt (s)."""
-    return _project_positions(*_cv_arrays(means, covs, dt, q), dim)
-
-
-@njit(cache=True)
-def _project_positions(means, covs, dt, q, dim):
-    n = means.shape[0]
-    pos = np.empty((n, dim))
-    cov = np.empty((n, dim, dim))
-    for i in range(n):
-        for r in range(dim):
-            pos[i, r] = cv_mean_entry(means, i, r, dt[i], dim)
-            for s in range(dim):
-                cov[i, r, s] = cv_cov_entry(covs, i, r, s, dt[i], q[i], dim)
-    return pos, cov
+    pos, cov = cv_predict(*_cv_arrays(means, covs, dt, q), dim)
+    return np.ascontiguousarray(pos[:, :dim]), np.ascontiguousarray(cov[:, :dim, :dim])
 
 
 def project_states(means: np.ndarray, covs: np.ndarray, dt: np.ndarray | float,

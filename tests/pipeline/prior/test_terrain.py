@@ -190,7 +190,8 @@ def test_read_errors_name_the_file(tmp_path):
         TerrainPrior.read(corrupt)
 
 
-def _sampling_prior(height: int, width: int, cell: float, seed: int, zeros: bool = True) -> TerrainPrior:
+def random_prior(height: int, width: int, cell: float, seed: int, zeros: bool = True) -> TerrainPrior:
+    """A seeded uneven prior (cubed uniform values, 20 % structural zeros unless ``zeros`` is False)."""
     rng = np.random.default_rng(seed)
     r = rng.random((height, width)) ** 3
     if zeros:
@@ -206,8 +207,8 @@ def _sampled_cell_counts(prior: TerrainPrior, pts: np.ndarray) -> np.ndarray:
     return counts
 
 
-def test_sampler_cell_frequencies_match_sampling_prior() -> None:
-    prior = _sampling_prior(6, 9, 20.0, 0)
+def test_sampler_cell_frequencies_matchrandom_prior() -> None:
+    prior = random_prior(6, 9, 20.0, 0)
     n = 40000
     pts = prior.sample(n, np.random.default_rng(1))
     counts = _sampled_cell_counts(prior, pts)
@@ -219,7 +220,7 @@ def test_sampler_cell_frequencies_match_sampling_prior() -> None:
 
 
 def test_sampler_is_uniform_inside_cells() -> None:
-    prior = _sampling_prior(4, 5, 30.0, 2)
+    prior = random_prior(4, 5, 30.0, 2)
     pts = prior.sample(20000, np.random.default_rng(3))
     u, v = prior.grid.to_pixel(pts[:, 0], pts[:, 1])
     for frac in (u % 1.0, v % 1.0):
@@ -227,7 +228,7 @@ def test_sampler_is_uniform_inside_cells() -> None:
 
 
 def test_sampler_respects_region() -> None:
-    prior = _sampling_prior(20, 20, 10.0, 4, zeros=False)
+    prior = random_prior(20, 20, 10.0, 4, zeros=False)
     region = (300050.0, 6199850.0, 300120.0, 6199950.0)  # columns 5..12, rows 5..15
     pts = prior.sample(30000, np.random.default_rng(5), region)
     assert (pts[:, 0] >= region[0]).all() and (pts[:, 0] < region[2]).all()

@@ -9,25 +9,10 @@ from scipy import stats
 
 from pipeline.gis.grid import Grid
 from pipeline.prior.terrain import TerrainPrior
+from tests.pipeline.prior.test_terrain import random_prior
 from tracker.study.simulate import AirborneSensor, central_windows, simulate
 
 CRS = "EPSG:32633"
-
-
-def _prior(height: int, width: int, cell: float, seed: int, zeros: bool = True) -> TerrainPrior:
-    rng = np.random.default_rng(seed)
-    r = rng.random((height, width)) ** 3
-    if zeros:
-        r[rng.random((height, width)) < 0.2] = 0.0  # structural zeros, like water
-    grid = Grid(CRS, Affine(cell, 0.0, 300000.0, 0.0, -cell, 6200000.0), height, width)
-    return TerrainPrior.from_array(r, grid)
-
-
-def _cell_counts(prior: TerrainPrior, pts: np.ndarray) -> np.ndarray:
-    u, v = prior.grid.to_pixel(pts[:, 0], pts[:, 1])
-    counts = np.zeros(prior.grid.shape, dtype=np.int64)
-    np.add.at(counts, (v.astype(int), u.astype(int)), 1)
-    return counts
 
 
 def test_central_windows_paper_geometry() -> None:
@@ -81,7 +66,7 @@ def test_platform_track_geometry() -> None:
 
 
 def test_simulate_windows_truth_and_noise() -> None:
-    prior = _prior(350, 350, 40.0, 7)  # 14 km square
+    prior = random_prior(350, 350, 40.0, 7)  # 14 km square
     sc = simulate(prior, seed=11, n_targets=200, n_reports=4000)
     keep = sc.keep
     assert keep == pytest.approx((303500.0, 6189500.0, 310500.0, 6196500.0))
@@ -101,7 +86,7 @@ def test_simulate_windows_truth_and_noise() -> None:
 
 
 def test_simulate_is_seeded() -> None:
-    prior = _prior(100, 100, 50.0, 8)
+    prior = random_prior(100, 100, 50.0, 8)
     a, b, c = simulate(prior, 3), simulate(prior, 3), simulate(prior, 4)
     np.testing.assert_array_equal(a.reports.means, b.reports.means)
     np.testing.assert_array_equal(a.targets, b.targets)
@@ -109,7 +94,7 @@ def test_simulate_is_seeded() -> None:
 
 
 def test_bad_input() -> None:
-    prior = _prior(10, 10, 20.0, 9)
+    prior = random_prior(10, 10, 20.0, 9)
     with pytest.raises(ValueError, match="altitude_m"):
         AirborneSensor(altitude_m=-1.0)
     with pytest.raises(ValueError, match="keep_fraction"):
