@@ -15,6 +15,11 @@ $(STAMP): pyproject.toml
 	  echo "installing Debian's libusb-1.0-0 (needed by open3d)"; \
 	  SUDO=$$([ "$$(id -u)" = 0 ] || echo sudo); \
 	  $$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq libusb-1.0-0; }
+	@# the interactive map's test opens it in Debian's headless Chromium, offline
+	@command -v chromium >/dev/null 2>&1 || { \
+	  echo "installing Debian's chromium (the browser test of the HTML maps)"; \
+	  SUDO=$$([ "$$(id -u)" = 0 ] || echo sudo); \
+	  $$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq chromium; }
 	test -d $(VENV) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -e ".[dev,lidar]"
@@ -22,14 +27,14 @@ $(STAMP): pyproject.toml
 
 prior: setup
 	$(VENV)/bin/terrain-prior build terrain_data/region.toml --out $(OUT)/prior.tif
-	$(VENV)/bin/terrain-prior show $(OUT)/prior.tif --png $(OUT)/prior.png --features-png $(OUT)/features.png
+	$(VENV)/bin/terrain-prior show $(OUT)/prior.tif --png $(OUT)/prior.png --features-png $(OUT)/features.png --html $(OUT)/prior.html
 
 # The main job: the prior and its maps, one simulated data set tracked with TT and drawn, and the
 # paper's experiment (28 data sets x 100 reports, UU/UT/TT over a tau grid) with its figures.
 demo: prior
 	$(VENV)/bin/terrain-track simulate --prior $(OUT)/prior.tif --seed 0 --out $(OUT)/reports.csv --truth-out $(OUT)/targets.csv
 	$(VENV)/bin/terrain-track run --prior $(OUT)/prior.tif --reports $(OUT)/reports.csv --variant TT --tau -4.75 --out $(OUT)/tracks.gpkg
-	$(VENV)/bin/terrain-track show --prior $(OUT)/prior.tif --reports $(OUT)/reports.csv --tracks $(OUT)/tracks.gpkg --truth $(OUT)/targets.csv --png $(OUT)/tracks.png
+	$(VENV)/bin/terrain-track show --prior $(OUT)/prior.tif --reports $(OUT)/reports.csv --tracks $(OUT)/tracks.gpkg --truth $(OUT)/targets.csv --png $(OUT)/tracks.png --html $(OUT)/tracks.html
 	$(VENV)/bin/terrain-track experiment --prior $(OUT)/prior.tif --datasets 28 --reports 100 --tau -9:3:0.25 --out $(OUT)/experiment
 
 test: setup

@@ -46,15 +46,23 @@ def cmd_build(args: argparse.Namespace) -> None:
 
 
 def cmd_show(args: argparse.Namespace) -> None:
+    if not (args.png or args.html):
+        raise ValueError("show: give --png, --html or both")
     prior = TerrainPrior.read(args.prior)
-    plot_prior(prior, args.png)
-    print(f"wrote {args.png}")
+    if args.png:
+        plot_prior(prior, args.png)
+        print(f"wrote {args.png}")
+    region = args.region or prior.model.get("provenance", {}).get("config")
     if args.features_png:
-        region = args.region or prior.model.get("provenance", {}).get("config")
         if region is None:
             raise PriorError(f"{args.prior}: records no region config; pass --region REGION.toml for --features-png")
         plot_features(build_features(load_config(region), progress=not args.quiet), args.features_png)
         print(f"wrote {args.features_png}")
+    if args.html:
+        from pipeline.show.html import write_prior_html  # folium loads only for --html
+
+        write_prior_html(prior, args.html, load_config(region) if region else None, args.basemap)
+        print(f"wrote {args.html}")
 
 
 def make_parser() -> argparse.ArgumentParser:
@@ -76,11 +84,13 @@ def make_parser() -> argparse.ArgumentParser:
     p.add_argument("--tile", type=int, default=1024, help="tile edge in cells for tiled builds (default 1024)")
     p.set_defaults(func=cmd_build)
 
-    p = sub.add_parser("show", help="draw a prior (and its features) as PNG maps")
+    p = sub.add_parser("show", help="draw a prior (and its features) as PNG maps and/or an interactive HTML map")
     p.add_argument("prior", type=Path, help="prior GeoTIFF written by build")
-    p.add_argument("--png", type=Path, required=True, help="prior map to write")
+    p.add_argument("--png", type=Path, help="prior map to write")
+    p.add_argument("--html", type=Path, help="interactive map to write (one HTML file, opens offline; roads and water from the region config)")
+    p.add_argument("--basemap", metavar="URL", help="--html: XYZ tile URL template drawn under the layers (default none: no network)")
     p.add_argument("--features-png", type=Path, help="feature maps to write (rebuilds the features)")
-    p.add_argument("--region", type=Path, help="region config for --features-png (default: the one the prior records)")
+    p.add_argument("--region", type=Path, help="region config for --features-png and --html layers (default: the one the prior records)")
     p.set_defaults(func=cmd_show)
     add_learn_parser(sub)
     return parser

@@ -140,21 +140,32 @@ def cmd_show(args: argparse.Namespace) -> None:
     from tracker.io.tracks import read_tracks
     from tracker.study.plots import tracks_figure
 
+    if not (args.png or args.html):
+        raise ValueError("show: give --png, --html or both")
     prior = TerrainPrior.read(args.prior)
     reports, _ = read_reports(args.reports)
-    means, covs, _ = read_tracks(args.tracks)
+    means, covs, counts = read_tracks(args.tracks)
     targets = read_targets(args.truth) if args.truth else None
-    tracks_figure(prior, reports.means, reports.covs, means, covs, args.png, targets=targets)
-    print(f"wrote {args.png}")
+    if args.png:
+        tracks_figure(prior, reports.means, reports.covs, means, covs, args.png, targets=targets)
+        print(f"wrote {args.png}")
+    if args.html:
+        from tracker.study.maps import tracks_map  # folium loads only for --html
+
+        tracks_map(prior, reports.means, reports.covs, means, covs, counts, targets=targets,
+                   basemap=args.basemap).save(args.html, title="reports and estimated targets")
+        print(f"wrote {args.html}")
 
 
 def add_show_parser(sub) -> None:
-    p = sub.add_parser("show", help="draw reports and estimated targets over the prior as a PNG map")
+    p = sub.add_parser("show", help="draw reports and estimated targets over the prior as a PNG map and/or an interactive HTML map")
     p.add_argument("--prior", type=Path, required=True, help="prior GeoTIFF")
     p.add_argument("--reports", type=Path, required=True, help="reports CSV or GeoPackage")
     p.add_argument("--tracks", type=Path, required=True, help="tracks GeoPackage (terrain-track run)")
     p.add_argument("--truth", type=Path, help="true targets CSV (terrain-track simulate --truth-out)")
-    p.add_argument("--png", type=Path, required=True, help="PNG to write")
+    p.add_argument("--png", type=Path, help="PNG to write")
+    p.add_argument("--html", type=Path, help="interactive map to write (one HTML file, opens offline)")
+    p.add_argument("--basemap", metavar="URL", help="--html: XYZ tile URL template drawn under the layers (default none: no network)")
     p.set_defaults(func=cmd_show)
 
 

@@ -1,8 +1,11 @@
-"""Maps of priors and feature stacks (matplotlib loads on first use)."""
+"""Maps of priors and feature stacks: PNG (matplotlib loads on first use) and interactive HTML (folium)."""
 
 from common.exports import lazy_exports
 
 _EXPORTS = {
+    "add_region_layers": "html",
+    "prior_map": "html",
+    "write_prior_html": "html",
     "plot_features": "plots",
     "plot_prior": "plots",
     "road_water_obstacles": "plots",

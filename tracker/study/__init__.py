@@ -31,6 +31,7 @@ _EXPORTS = {
     "table_markdown": "plots",
     "write_figures": "plots",
     "tracks_figure": "plots",
+    "tracks_map": "maps",
     "brute_force_pairs": "projections",
     "predicted_choice": "projections",
     "measure_projections": "projections",
