@@ -204,6 +204,8 @@ class _Chain:
             dst[:n] = src
         self.logL = np.zeros(K)
         self.logL[:n] = self._ll(self.cnt[:n], self.P[:n], self.h[:n], self.q[:n], self.ld[:n], self._masks(np.arange(n)))
+        self.cb, self.cB = np.zeros((K, 2)), np.tile(np.eye(2), (K, 1, 1))
+        self.cb[:n], self.cB[:n] = self._gaussians(self.P[:n], self.h[:n])
         self.free = np.zeros(K, np.int64)
         self.free[: K - n] = np.arange(K - 1, n - 1, -1)  # LOW ids popped first: deterministic ids
         self.istate = np.array([n, K - n, K], np.int64)
@@ -239,11 +241,15 @@ class _Chain:
         u = rng.random(self.K)
         moved = 0
         pending = order
+        size = min(self.o.chunk, 2048)
         while pending.size:
-            U = pending[: self.o.chunk]
+            U = pending[:size]
             sel, m = self._round(U, beta, u)
             moved += m
-            pending = np.concatenate([U[~sel], pending[self.o.chunk:]])
+            pending = np.concatenate([U[~sel], pending[size:]])
+            # about half of a round is selectable when its reports meet ~1 gated neighbour each:
+            # round sizes follow that point (the chain does not depend on them)
+            size = int(np.clip(2 * sel.sum(), 64, self.o.chunk))
             self.o.stats_["rounds"] += 1
         return moved
 
@@ -253,7 +259,7 @@ class _Chain:
         zc = rs.z[U] - rs.origin
         V = rs.V[U]
         live = np.flatnonzero(self.cnt > 0)
-        b_l, B_l = self._gaussians(self.P[live], self.h[live])
+        b_l, B_l = self.cb[live], self.cB[live]
         c_idx, r_idx = self.o.gater(b_l, B_l, zc, V, threshold=gam)
         cl, pos = live[np.asarray(c_idx, np.int64)], np.asarray(r_idx, np.int64)
         own = self.labels[U]
@@ -330,6 +336,9 @@ class _Chain:
             self.labels, self.cnt, self.P, self.h, self.q, self.ld, self.logL, self.free, self.istate,
             self.s_cache, kind, param, rs.vinv, rs.hv, rs.qv, rs.ldv)
         self.lp += d_lp
+        changed = np.unique(np.concatenate([own[s_pos], o_cl, self.labels[U[s_pos]]]))
+        changed = changed[self.cnt[changed] > 0]
+        self.cb[changed], self.cB[changed] = self._gaussians(self.P[changed], self.h[changed])
         return sel, moved
 
     # -- split-merge (Jain & Neal 2004), restricted Gibbs launch
