@@ -45,7 +45,13 @@ from tqdm.auto import tqdm
 
 from pipeline.prior.terrain import TerrainPrior
 from tracker.association.batch_kernels import apply_moves, select_round
-from tracker.association.greedy import DEFAULT_GAMMA, Estimate, associate, perfect_estimate
+from tracker.association.greedy import (
+    DEFAULT_GAMMA,
+    Estimate,
+    _one_thread_when_small,
+    associate,
+    perfect_estimate,
+)
 from tracker.models.sfunc import ExpS, PoissonS, SModel, log_s
 from tracker.types.reports import Reports, check_gaussians
 
@@ -54,7 +60,6 @@ MODES = ("map", "sample")
 CHUNK = 65536
 """Reports per Gibbs round: larger rounds amortise gating and integrate calls, smaller ones conflict less."""
 _LOG_2PI = math.log(2.0 * math.pi)
-_RMAX_SLACK = math.log(2.0)  # the integrator's error on ∫G r <= r_max, as in greedy's gate
 
 Integrator = Callable[..., np.ndarray]
 Gater = Callable[..., tuple]
@@ -119,10 +124,16 @@ def cluster_log_lik(
     B = np.linalg.inv(P)
     B = 0.5 * (B + B.transpose(0, 2, 1))
     b = np.einsum("nij,nj->ni", B, h)
-    ln_kappa = -(cnt - 1) * _LOG_2PI - 0.5 * ld - 0.5 * np.linalg.slogdet(P)[1] - 0.5 * (q - np.einsum("ni,ni->n", h, b))
+    ln_kappa = _log_kappa(cnt, P, h, q, ld)
     if variant == "UU":
         return ln_kappa + _log_u(prior)
     return ln_kappa + _log((integrator or _default_integrator())(prior, b + origin, B))
+
+
+def _log_kappa(cnt: np.ndarray, P: np.ndarray, h: np.ndarray, q: np.ndarray, ld: np.ndarray) -> np.ndarray:
+    """ln κ_C of the Gaussian product: −(m−1) ln 2π − ½ Σ ln det V + ½ ln det B − ½(Σ zᵀV⁻¹z − hᵀBh)."""
+    hb = np.einsum("ni,ni->n", h, np.linalg.solve(P, h[..., None])[..., 0])
+    return -(cnt - 1) * _LOG_2PI - 0.5 * ld - 0.5 * np.linalg.slogdet(P)[1] - 0.5 * (q - hb)
 
 
 def _sums(labels: np.ndarray, rs: ReportStats, n: int) -> tuple[np.ndarray, ...]:
@@ -452,8 +463,9 @@ class BatchAssociator:
         self.anneal, self.beta_max, self.icm_max, self.restarts = int(anneal), float(beta_max), int(icm_max), int(restarts)
         self.burn_in, self.samples, self.n_split_merge, self.launch = int(burn_in), int(samples), int(split_merge), int(launch)
         self.seed, self.progress, self.use_table = seed, progress, table
-        self.integrator = integrator or _default_integrator()
-        self.gater = gater or _default_gater()
+        # rounds are small: one numba thread below 4096 rows, as in greedy
+        self.integrator = _one_thread_when_small(integrator or _default_integrator(), 1)
+        self.gater = _one_thread_when_small(gater or _default_gater(), 2)
         self.stamp = 0
         self._blocked = np.zeros(0, np.int64)
         self.stats_ = {"rounds": 0, "integrals": 0, "sweeps": 0, "split_merge_accepted": 0}
