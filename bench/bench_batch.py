@@ -45,4 +45,39 @@ def run(quick: bool = False) -> dict:
 if __name__ == "__main__":
     import json
 
-    print(json.dumps(run(quick="--quick" in sys.argv), indent=1))
+    print(json.dumps(calibration() if "--calibration" in sys.argv else run(quick="--quick" in sys.argv), indent=1))
+
+
+def calibration(n_datasets: int = 10, samples: int = 200, variant: str = "TT") -> dict:
+    """Reliability of the posterior co-association probabilities on the paper's simulated data sets
+    (bundled region prior, 100 reports each, S = eq. 16 with μ the expected number of targets in the
+    central window): per bin [p, p+0.1), the fraction of gated pairs truly from one target."""
+    from pipeline.build.region import build_region_prior
+    from pipeline.config.region import load_config
+    from tests.pipeline.gis_helpers import REGION_TOML
+    from tracker.models.sfunc import PoissonS
+    from tracker.study.simulate import simulate
+
+    prior = build_region_prior(load_config(REGION_TOML), progress=False)
+    probs, same = [], []
+    for seed in range(n_datasets):
+        sc = simulate(prior, seed)
+        g = prior.grid
+        rows, cols = np.mgrid[0 : g.height, 0 : g.width]
+        x = g.transform.c + (cols + 0.5) * g.dx
+        y = g.transform.f - (rows + 0.5) * g.dy
+
+        def mass(b):
+            return float(prior.density[(x >= b[0]) & (x < b[2]) & (y >= b[1]) & (y < b[3])].sum())
+
+        mu = 200.0 * mass(sc.keep) / mass(sc.region)  # expected targets in the keep window
+        res = BatchAssociator(prior, variant, s_model=PoissonS(mu), mode="sample", burn_in=30, samples=samples,
+                              split_merge=2, seed=seed).fit(sc.reports)
+        t = sc.reports.truth
+        probs.append(res.pair_prob)
+        same.append(t[res.pairs[:, 0]] == t[res.pairs[:, 1]])
+    p, s = np.concatenate(probs), np.concatenate(same)
+    bins = np.minimum((p * 10).astype(int), 9)
+    return {"pairs": int(p.size), "bins": [
+        {"p": b / 10, "n": int((bins == b).sum()), "fraction_same": float(s[bins == b].mean()) if (bins == b).any() else None}
+        for b in range(10)]}
