@@ -42,11 +42,6 @@ def run(quick: bool = False) -> dict:
             "n_greedy": int(np.unique(g[keep]).size), "n_after": int(ch.istate[0]), "peak_rss_gib": rss}
 
 
-if __name__ == "__main__":
-    import json
-
-    print(json.dumps(calibration() if "--calibration" in sys.argv else run(quick="--quick" in sys.argv), indent=1))
-
 
 def calibration(n_datasets: int = 10, samples: int = 200, variant: str = "TT") -> dict:
     """Reliability of the posterior co-association probabilities on the paper's simulated data sets
@@ -59,17 +54,17 @@ def calibration(n_datasets: int = 10, samples: int = 200, variant: str = "TT") -
     from tracker.study.simulate import simulate
 
     prior = build_region_prior(load_config(REGION_TOML), progress=False)
+    g = prior.grid
+    rows, cols = np.mgrid[0 : g.height, 0 : g.width]
+    x = g.transform.c + (cols + 0.5) * g.dx
+    y = g.transform.f - (rows + 0.5) * g.dy
+
+    def mass(b: tuple) -> float:
+        return float(prior.density[(x >= b[0]) & (x < b[2]) & (y >= b[1]) & (y < b[3])].sum())
+
     probs, same = [], []
     for seed in range(n_datasets):
         sc = simulate(prior, seed)
-        g = prior.grid
-        rows, cols = np.mgrid[0 : g.height, 0 : g.width]
-        x = g.transform.c + (cols + 0.5) * g.dx
-        y = g.transform.f - (rows + 0.5) * g.dy
-
-        def mass(b):
-            return float(prior.density[(x >= b[0]) & (x < b[2]) & (y >= b[1]) & (y < b[3])].sum())
-
         mu = 200.0 * mass(sc.keep) / mass(sc.region)  # expected targets in the keep window
         res = BatchAssociator(prior, variant, s_model=PoissonS(mu), mode="sample", burn_in=30, samples=samples,
                               split_merge=2, seed=seed).fit(sc.reports)
@@ -81,3 +76,9 @@ def calibration(n_datasets: int = 10, samples: int = 200, variant: str = "TT") -
     return {"pairs": int(p.size), "bins": [
         {"p": b / 10, "n": int((bins == b).sum()), "fraction_same": float(s[bins == b].mean()) if (bins == b).any() else None}
         for b in range(10)]}
+
+
+if __name__ == "__main__":
+    import json
+
+    print(json.dumps(calibration() if "--calibration" in sys.argv else run(quick="--quick" in sys.argv), indent=1))
