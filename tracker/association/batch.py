@@ -380,6 +380,8 @@ class _Chain:
             ll = self._set_ll([gi, np.append(gi, k), gj, np.append(gj, k)])
             wi, wj = ll[1] - ll[0], ll[3] - ll[2]
             top = max(wi, wj)
+            if top == -math.inf:
+                return side, -math.inf  # k fits neither group (prior zero): the proposal is void
             norm = top + math.log(math.exp(wi - top) + math.exp(wj - top))
             side[t] = rng.random() < math.exp(wj - norm) if target is None else target[t]
             log_q += (wj if side[t] else wi) - norm
@@ -401,6 +403,8 @@ class _Chain:
             n = int(self.istate[0])
             if ci == cj:
                 side, log_q = self._restricted(i, j, rest, side, rng)
+                if log_q == -math.inf:
+                    continue
                 gi, gj = np.append(rest[~side], i), np.append(rest[side], j)
                 ll = self._set_ll([gi, gj])
                 d = float(log_s(s, n + 1, K) - log_s(s, n, K)) + ll.sum() - self.logL[ci]
