@@ -1,0 +1,595 @@
+"""Batch association: the MAP partition of the reports, and samples of its posterior, under paper 1's
+own model (static targets in 2-D; see docs/batch.md).
+
+With n clusters among K reports, S of eq. 16 (``PoissonS``) or the paper's ``ExpS``,
+
+    ln p(Λ | Z) = ln S(n, K) + Σ_C ln L_C + const,
+    L_C = ∫ r(y) Π_{k∈C} G(z_k; y, V_k) dy = κ_C · ∫ G(y; b_C, B_C) r(y) dy,
+
+B_C = (Σ V_k⁻¹)⁻¹, b_C = B_C Σ V_k⁻¹ z_k and
+ln κ_C = −(m−1) ln 2π − ½ Σ ln det V_k + ½ ln det B_C − ½(Σ z_kᵀV_k⁻¹z_k − b_Cᵀ B_C⁻¹ b_C) (m = |C|).
+UU takes r = u = 1 / (grid area) over all space (∫G u = u), TT the terrain prior. Every cluster is
+kept as its sufficient statistics (count, Σ V⁻¹, Σ V⁻¹z, Σ zᵀV⁻¹z, Σ ln det V), with z measured from
+an origin near the reports so that Σ zᵀV⁻¹z does not cancel catastrophically.
+
+Moves (all on gated candidates only):
+
+* collapsed Gibbs, one report at a time, to a gated cluster or a new one, as an exact sequential scan
+  in a random order (the random stream is drawn per sweep, so it does not depend on ``chunk``). A
+  round takes the next ``chunk`` reports of the scan, gates them against the current cluster
+  posteriors (b_D, B_D + V_i), and selects those whose move cannot interact with an earlier report
+  of the round (disjoint own and candidate clusters; no possible new cluster of one gates the other);
+  their deltas come from one integrate call and a numba loop applies them in scan order with the
+  current n in ln S(n₋, K) vs ln S(n₋+1, K). The rest go to the next round, in order.
+* split–merge (Jain & Neal 2004) on gated report pairs, with a restricted-Gibbs launch state.
+
+Gate bound. Let n₋ be the number of clusters without report i, c_i = ∫G(z_i; y, V_i) r(y) dy (ln L({i}))
+and I_D = ∫G(y; b_D, B_D) r. Joining a cluster D with d² = (z_i−b_D)ᵀ(B_D+V_i)⁻¹(z_i−b_D) > γ has, relative
+to the new-cluster option, the weight
+
+    w_D / w_new = [S(n₋, K) / S(n₋+1, K)] · G(z_i; b_D, B_D+V_i) · I_{D∪i} / (I_D · c_i)
+               ≤ [S(n₋, K) / S(n₋+1, K)] · e^{−γ/2} r_max / (2π √det V_i · I_D · c_i)
+
+(B_D + V_i ⪰ V_i, I_{D∪i} ≤ r_max; UU: I = c = u). The probability a move neglects is at most the sum
+of this bound over the clusters outside the gate (:func:`gate_bound`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from pipeline.prior.terrain import TerrainPrior
+from tracker.association.batch_kernels import apply_moves, select_round
+from tracker.association.greedy import (
+    DEFAULT_GAMMA,
+    Estimate,
+    _one_thread_when_small,
+    associate,
+    perfect_estimate,
+)
+from tracker.models.sfunc import ExpS, PoissonS, SModel, log_s
+from tracker.types.reports import Reports, check_gaussians
+
+VARIANTS = ("UU", "TT")
+MODES = ("map", "sample")
+CHUNK = 65536
+"""Reports per Gibbs round: larger rounds amortise gating and integrate calls, smaller ones conflict less."""
+_LOG_2PI = math.log(2.0 * math.pi)
+
+Integrator = Callable[..., np.ndarray]
+Gater = Callable[..., tuple]
+
+
+def _default_integrator() -> Integrator:
+    from tracker.integrate.terraces import integrate
+
+    return integrate
+
+
+def _default_gater() -> Gater:
+    from tracker.gating.gate import gate
+
+    return gate
+
+
+def _log(x: np.ndarray) -> np.ndarray:
+    with np.errstate(divide="ignore"):
+        return np.log(np.maximum(x, 0.0))
+
+
+def _log_u(prior: TerrainPrior) -> float:
+    xmin, ymin, xmax, ymax = prior.grid.bounds
+    return -math.log((xmax - xmin) * (ymax - ymin))
+
+
+@dataclass(frozen=True)
+class ReportStats:
+    """Per report: ``vinv`` V⁻¹ (K,2,2) per m², ``hv`` V⁻¹(z − origin) (K,2) per m, ``qv`` (z−o)ᵀV⁻¹(z−o)
+    (K,), ``ldv`` ln det V (K,) ln m⁴; ``origin`` (2,) m, ``z`` (K,2) m and ``V`` (K,2,2) m² as given."""
+
+    vinv: np.ndarray
+    hv: np.ndarray
+    qv: np.ndarray
+    ldv: np.ndarray
+    origin: np.ndarray
+    z: np.ndarray
+    V: np.ndarray
+
+    @classmethod
+    def of(cls, reports: Reports) -> ReportStats:
+        z, V = check_gaussians(reports.means, reports.covs, "reports")
+        if z.shape[1] != 2:
+            raise ValueError(f"reports: positions must be 2-D, got dimension {z.shape[1]}")
+        origin = z.mean(axis=0) if z.shape[0] else np.zeros(2)
+        vinv = np.linalg.inv(V)
+        vinv = 0.5 * (vinv + vinv.transpose(0, 2, 1))
+        hv = np.einsum("kij,kj->ki", vinv, z - origin)
+        qv = np.einsum("ki,ki->k", z - origin, hv)
+        return cls(vinv, hv, qv, np.linalg.slogdet(V)[1], origin, z, V)
+
+
+def cluster_log_lik(
+    prior: TerrainPrior, variant: str, cnt: np.ndarray, P: np.ndarray, h: np.ndarray, q: np.ndarray,
+    ld: np.ndarray, origin: np.ndarray, integrator: Integrator | None = None,
+) -> np.ndarray:
+    """ln L_C (ln of per m^{2m}) of clusters given by their sums (count, Σ V⁻¹, Σ V⁻¹z, Σ zᵀV⁻¹z,
+    Σ ln det V; z from ``origin``), with ONE integrate call for all of them (TT)."""
+    if cnt.size == 0:
+        return np.zeros(0)
+    B = np.linalg.inv(P)
+    B = 0.5 * (B + B.transpose(0, 2, 1))
+    b = np.einsum("nij,nj->ni", B, h)
+    ln_kappa = _log_kappa(cnt, P, h, q, ld)
+    if variant == "UU":
+        return ln_kappa + _log_u(prior)
+    return ln_kappa + _log((integrator or _default_integrator())(prior, b + origin, B))
+
+
+def _log_kappa(cnt: np.ndarray, P: np.ndarray, h: np.ndarray, q: np.ndarray, ld: np.ndarray) -> np.ndarray:
+    """ln κ_C of the Gaussian product: −(m−1) ln 2π − ½ Σ ln det V + ½ ln det B − ½(Σ zᵀV⁻¹z − hᵀBh)."""
+    hb = np.einsum("ni,ni->n", h, np.linalg.solve(P, h[..., None])[..., 0])
+    return -(cnt - 1) * _LOG_2PI - 0.5 * ld - 0.5 * np.linalg.slogdet(P)[1] - 0.5 * (q - hb)
+
+
+def _sums(labels: np.ndarray, rs: ReportStats, n: int) -> tuple[np.ndarray, ...]:
+    cnt = np.bincount(labels, minlength=n)
+    P = np.zeros((n, 2, 2))
+    h = np.zeros((n, 2))
+    np.add.at(P, labels, rs.vinv)
+    np.add.at(h, labels, rs.hv)
+    return cnt, P, h, np.bincount(labels, rs.qv, n), np.bincount(labels, rs.ldv, n)
+
+
+def log_posterior(
+    prior: TerrainPrior, reports: Reports, labels: np.ndarray, s_model: SModel, variant: str = "TT",
+    integrator: Integrator | None = None,
+) -> float:
+    """ln p(Λ | Z) up to a constant common to all partitions: ln S(n, K) + Σ_C ln L_C, for the partition
+    given by ``labels`` (K,) (any integers; equal labels share a cluster). One integrate call (TT)."""
+    _check_variant(variant)
+    rs = ReportStats.of(reports)
+    _, inv = np.unique(np.asarray(labels), return_inverse=True)
+    n = int(inv.max()) + 1 if inv.size else 0
+    ll = cluster_log_lik(prior, variant, *_sums(inv, rs, n), rs.origin, integrator)
+    return float(log_s(s_model, n, len(reports))) + float(ll.sum())
+
+
+def gate_bound(log_s_ratio: float, gamma: float, log_rmax: float, log_det_v: float, log_c: float, log_i_d: np.ndarray) -> float:
+    """Upper bound on the probability a Gibbs move of report i gives to the clusters outside its gate:
+    Σ_D e^{ln S(n₋,K) − ln S(n₋+1,K)} e^{−γ/2} r_max / (2π √det V_i · I_D · c_i) over the out-of-gate
+    clusters' ln I_D (``log_i_d``); ``log_s_ratio`` = ln S(n₋,K) − ln S(n₋+1,K), ``log_c`` = ln c_i."""
+    base = log_s_ratio - 0.5 * gamma + log_rmax - _LOG_2PI - 0.5 * log_det_v - log_c
+    return float(np.exp(base - np.asarray(log_i_d)).sum())
+
+
+def _check_variant(variant: str) -> None:
+    if variant not in VARIANTS:
+        raise ValueError(f"variant must be one of {VARIANTS} (UT associates as UU), got {variant!r}")
+
+
+@dataclass
+class BatchResult:
+    """``labels`` (K,) cluster per report (0..n−1), ``log_posterior`` its ln p(Λ|Z) (+const), and the
+    greedy start's ``greedy_labels`` / ``greedy_log_posterior``. ``membership`` (K,): each report's
+    posterior probability of belonging to its cluster (see :meth:`BatchAssociator.fit`; 1 in map
+    mode). Sampling mode: ``pairs`` (P,2) gated report pairs i < j with ``pair_prob`` (P,) the
+    posterior P(i and j from one target), and ``nd_values`` / ``nd_prob`` the posterior of N_D.
+    ``trace`` ln p per sweep; ``stats`` counters."""
+
+    labels: np.ndarray
+    log_posterior: float
+    greedy_labels: np.ndarray
+    greedy_log_posterior: float
+    membership: np.ndarray
+    pairs: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))
+    pair_prob: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    nd_values: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    nd_prob: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    trace: list = field(default_factory=list)
+    stats: dict = field(default_factory=dict)
+
+    @property
+    def n_detected(self) -> int:
+        return int(self.labels.max()) + 1 if self.labels.size else 0
+
+
+class _Chain:
+    """One partition state with its cluster sums, ln L per cluster, and ln p(Λ|Z) kept up to date."""
+
+    def __init__(self, owner: BatchAssociator, rs: ReportStats, single_ll: np.ndarray, labels: np.ndarray,
+                 table: np.ndarray | None) -> None:
+        self.o, self.rs, self.single_ll, self.table = owner, rs, single_ll, table
+        K = rs.z.shape[0]
+        self.K = K
+        _, inv = np.unique(labels, return_inverse=True)
+        n = int(inv.max()) + 1 if K else 0
+        self.labels = inv.astype(np.int64)
+        self.cnt, self.P, self.h, self.q, self.ld = (np.zeros((K,) + s, d) for s, d in
+                                                     (((), np.int64), ((2, 2), float), ((2,), float), ((), float), ((), float)))
+        for dst, src in zip((self.cnt, self.P, self.h, self.q, self.ld), _sums(self.labels, rs, n), strict=True):
+            dst[:n] = src
+        self.logL = np.zeros(K)
+        self.logL[:n] = self._ll(self.cnt[:n], self.P[:n], self.h[:n], self.q[:n], self.ld[:n], self._masks(np.arange(n)))
+        self.cb, self.cB = np.zeros((K, 2)), np.tile(np.eye(2), (K, 1, 1))
+        self.cb[:n], self.cB[:n] = self._gaussians(self.P[:n], self.h[:n])
+        self.free = np.zeros(K, np.int64)
+        self.free[: K - n] = np.arange(K - 1, n - 1, -1)  # LOW ids popped first: deterministic ids
+        self.istate = np.array([n, K - n, K], np.int64)
+        self.s_cache = np.full(K + 2, np.nan)
+        self.lp = float(log_s(owner.s_model, n, K)) + float(self.logL[:n].sum())
+
+    # -- ln L of candidate clusters: the table (tests, K <= 20) or the integrator
+
+    def _masks(self, clusters: np.ndarray) -> np.ndarray | None:
+        if self.table is None:
+            return None
+        masks = np.zeros(self.K, np.int64)
+        np.bitwise_or.at(masks, self.labels, np.left_shift(np.int64(1), np.arange(self.K, dtype=np.int64)))
+        return masks[clusters]
+
+    def _ll(self, cnt, P, h, q, ld, masks) -> np.ndarray:
+        if self.table is not None:
+            return self.table[masks]
+        self.o.stats_["integrals"] += int(cnt.size) if self.o.variant == "TT" else 0
+        return cluster_log_lik(self.o.prior, self.o.variant, cnt, P, h, q, ld, self.rs.origin, self.o.integrator)
+
+    def _gaussians(self, P: np.ndarray, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        B = np.linalg.inv(P)
+        B = 0.5 * (B + B.transpose(0, 2, 1))
+        return np.einsum("nij,nj->ni", B, h), B
+
+    # -- one Gibbs sweep
+
+    def sweep(self, beta: float, rng: np.random.Generator) -> int:
+        """One exact sequential scan (gated) in a random order at inverse temperature ``beta``; returns
+        the number of reports that changed cluster."""
+        order = rng.permutation(self.K)
+        u = rng.random(self.K)
+        moved = 0
+        pending = order
+        size = min(self.o.chunk, 2048)
+        while pending.size:
+            U = pending[:size]
+            sel, m = self._round(U, beta, u)
+            moved += m
+            pending = np.concatenate([U[~sel], pending[size:]])
+            # about half of a round is selectable when its reports meet ~1 gated neighbour each:
+            # round sizes follow that point (the chain does not depend on them)
+            size = int(np.clip(2 * sel.sum(), 64, self.o.chunk))
+            self.o.stats_["rounds"] += 1
+        return moved
+
+    def _round(self, U: np.ndarray, beta: float, u: np.ndarray) -> tuple[np.ndarray, int]:
+        rs, gam = self.rs, self.o.gamma
+        m = U.size
+        zc = rs.z[U] - rs.origin
+        V = rs.V[U]
+        live = np.flatnonzero(self.cnt > 0)
+        b_l, B_l = self.cb[live], self.cB[live]
+        c_idx, r_idx = self.o.gater(b_l, B_l, zc, V, threshold=gam)
+        cl, pos = live[np.asarray(c_idx, np.int64)], np.asarray(r_idx, np.int64)
+        own = self.labels[U]
+        keep = cl != own[pos]
+        cl, pos = cl[keep], pos[keep]
+        order = np.lexsort((cl, pos))
+        cl, pos = cl[order], pos[order]
+        # own cluster without the report: its Gaussian decides whether staying is a gated option
+        multi = self.cnt[own] > 1
+        mi = np.flatnonzero(multi)
+        Pm = self.P[own[mi]] - rs.vinv[U[mi]]
+        hm = self.h[own[mi]] - rs.hv[U[mi]]
+        bm, Bm = self._gaussians(Pm, hm)
+        r = zc[mi] - bm
+        own_gated = np.zeros(m, bool)
+        own_gated[mi] = np.einsum("ni,nij,nj->n", r, np.linalg.inv(Bm + V[mi]), r) <= gam
+        # touched clusters (own + gated) per position
+        t_pos = np.concatenate([np.arange(m), pos])
+        t_cl = np.concatenate([own, cl])
+        t_ord = np.argsort(t_pos, kind="stable")
+        t_ptr = np.concatenate([[0], np.cumsum(np.bincount(t_pos, minlength=m))])
+        # possible new clusters of each report ({i}, own \ i, C ∪ i) and who they gate
+        Pc = self.P[cl] + rs.vinv[U[pos]]
+        hc = self.h[cl] + rs.hv[U[pos]]
+        bc, Bc = self._gaussians(Pc, hc)
+        pot_owner = np.concatenate([np.arange(m), mi, pos])
+        pot_m = np.concatenate([zc, bm, bc])
+        pot_c = np.concatenate([V, Bm, Bc])
+        p_idx, q_idx = self.o.gater(pot_m, pot_c, zc, V, threshold=gam)
+        a, b = pot_owner[np.asarray(p_idx, np.int64)], np.asarray(q_idx, np.int64)
+        ne = a != b
+        d_src = np.concatenate([a[ne], b[ne]])
+        d_dst = np.concatenate([b[ne], a[ne]])
+        d_ord = np.argsort(d_src, kind="stable")
+        d_ptr = np.concatenate([[0], np.cumsum(np.bincount(d_src, minlength=m))])
+        self.o.stamp += 1
+        sel = select_round(t_ptr, t_cl[t_ord], d_ptr, d_dst[d_ord], self.o.blocked(self.K), self.o.stamp)
+        # options of the selected reports: own (if gated and not alone) and gated clusters, by cluster id
+        s_pos = np.flatnonzero(sel)
+        opt_sel = sel[pos]
+        o_pos = np.concatenate([pos[opt_sel], s_pos[multi[s_pos] & own_gated[s_pos]]])
+        o_cl = np.concatenate([cl[opt_sel], own[o_pos[opt_sel.sum():]]])
+        oo = np.lexsort((o_cl, o_pos))
+        o_pos, o_cl = o_pos[oo], o_cl[oo]
+        is_own = o_cl == own[o_pos]
+        jo = U[o_pos]
+        ext = ~is_own
+        sm = s_pos[multi[s_pos]]  # selected reports that leave a non-empty cluster behind
+        jm = U[sm]
+        cnt_all = np.concatenate([self.cnt[o_cl[ext]] + 1, self.cnt[own[sm]] - 1])
+        P_all = np.concatenate([self.P[o_cl[ext]] + rs.vinv[jo[ext]], self.P[own[sm]] - rs.vinv[jm]])
+        h_all = np.concatenate([self.h[o_cl[ext]] + rs.hv[jo[ext]], self.h[own[sm]] - rs.hv[jm]])
+        q_all = np.concatenate([self.q[o_cl[ext]] + rs.qv[jo[ext]], self.q[own[sm]] - rs.qv[jm]])
+        ld_all = np.concatenate([self.ld[o_cl[ext]] + rs.ldv[jo[ext]], self.ld[own[sm]] - rs.ldv[jm]])
+        masks = None
+        if self.table is not None:
+            cm = self._masks(np.arange(self.K))
+            bit = np.left_shift(np.int64(1), np.arange(self.K, dtype=np.int64))
+            masks = np.concatenate([cm[o_cl[ext]] | bit[jo[ext]], cm[own[sm]] & ~bit[jm]])
+        ll = self._ll(cnt_all, P_all, h_all, q_all, ld_all, masks)
+        n_ext = int(ext.sum())
+        own_minus = np.zeros(m)
+        own_minus[sm] = ll[n_ext:]
+        opt_ll = np.empty(o_cl.size)
+        opt_ll[ext] = ll[:n_ext]
+        opt_ll[is_own] = self.logL[o_cl[is_own]]
+        opt_delta = np.where(is_own, opt_ll - own_minus[o_pos], opt_ll - self.logL[o_cl])
+        # CSR over the selected reports in scan order
+        rank = np.cumsum(sel) - 1
+        o_ptr = np.concatenate([[0], np.cumsum(np.bincount(rank[o_pos], minlength=s_pos.size))])
+        kind, param = self.o.s_model.code
+        d_lp, moved = apply_moves(
+            U[s_pos], o_ptr, o_cl, opt_delta, opt_ll, own_minus[s_pos], self.single_ll, u, float(beta),
+            self.labels, self.cnt, self.P, self.h, self.q, self.ld, self.logL, self.free, self.istate,
+            self.s_cache, kind, param, rs.vinv, rs.hv, rs.qv, rs.ldv)
+        self.lp += d_lp
+        changed = np.unique(np.concatenate([own[s_pos], o_cl, self.labels[U[s_pos]]]))
+        changed = changed[self.cnt[changed] > 0]
+        self.cb[changed], self.cB[changed] = self._gaussians(self.P[changed], self.h[changed])
+        return sel, moved
+
+    # -- split-merge (Jain & Neal 2004), restricted Gibbs launch
+
+    def _set_ll(self, members: list[np.ndarray]) -> np.ndarray:
+        rs = self.rs
+        cnt = np.array([x.size for x in members], np.int64)
+        P = np.array([rs.vinv[x].sum(0) for x in members]).reshape(-1, 2, 2)
+        h = np.array([rs.hv[x].sum(0) for x in members]).reshape(-1, 2)
+        q = np.array([rs.qv[x].sum() for x in members])
+        ld = np.array([rs.ldv[x].sum() for x in members])
+        masks = None
+        if self.table is not None:
+            masks = np.array([np.bitwise_or.reduce(np.left_shift(np.int64(1), x.astype(np.int64))) for x in members], np.int64)
+        return self._ll(cnt, P, h, q, ld, masks)
+
+    def _restricted(self, i: int, j: int, rest: np.ndarray, side: np.ndarray, rng, target: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+        """One restricted Gibbs scan of ``rest`` between the groups of i and j from state ``side`` (True =
+        with j). With ``target`` the scan is forced to it and only its log probability is accumulated
+        (the merge move's reverse proposal). Returns (side, ln q)."""
+        log_q = 0.0
+        side = side.copy()
+        for t in range(rest.size):
+            k = rest[t]
+            others = np.delete(np.arange(rest.size), t)
+            gi = np.concatenate([[i], rest[others][~side[others]]]).astype(np.int64)
+            gj = np.concatenate([[j], rest[others][side[others]]]).astype(np.int64)
+            ll = self._set_ll([gi, np.append(gi, k), gj, np.append(gj, k)])
+            wi, wj = ll[1] - ll[0], ll[3] - ll[2]
+            top = max(wi, wj)
+            if top == -math.inf:
+                return side, -math.inf  # k fits neither group (prior zero): the proposal is void
+            norm = top + math.log(math.exp(wi - top) + math.exp(wj - top))
+            side[t] = rng.random() < math.exp(wj - norm) if target is None else target[t]
+            log_q += (wj if side[t] else wi) - norm
+        return side, log_q
+
+    def split_merge(self, beta: float, rng: np.random.Generator, pairs: np.ndarray, n_moves: int, launch: int) -> int:
+        """``n_moves`` split–merge proposals on random gated report pairs; beta = inf accepts improvements
+        only. Returns the number accepted."""
+        accepted = 0
+        K, s = self.K, self.o.s_model
+        for _ in range(n_moves if pairs.shape[0] else 0):
+            i, j = pairs[rng.integers(pairs.shape[0])]
+            ci, cj = self.labels[i], self.labels[j]
+            members = np.flatnonzero((self.labels == ci) | (self.labels == cj))
+            rest = members[(members != i) & (members != j)]
+            side = rng.random(rest.size) < 0.5
+            for _ in range(launch):
+                side, _ = self._restricted(i, j, rest, side, rng)
+            n = int(self.istate[0])
+            if ci == cj:
+                side, log_q = self._restricted(i, j, rest, side, rng)
+                if log_q == -math.inf:
+                    continue
+                gi, gj = np.append(rest[~side], i), np.append(rest[side], j)
+                ll = self._set_ll([gi, gj])
+                d = float(log_s(s, n + 1, K) - log_s(s, n, K)) + ll.sum() - self.logL[ci]
+                log_acc = -math.inf if not np.isfinite(d) else (beta * d - log_q if np.isfinite(beta) else (0.0 if d > 0 else -math.inf))
+            else:
+                _, log_q = self._restricted(i, j, rest, side, rng, self.labels[rest] == cj)
+                ll = self._set_ll([members])
+                d = float(log_s(s, n - 1, K) - log_s(s, n, K)) + ll[0] - self.logL[ci] - self.logL[cj]
+                log_acc = -math.inf if not np.isfinite(d) else (beta * d + log_q if np.isfinite(beta) else (0.0 if d > 0 else -math.inf))
+            if math.log(rng.random()) < log_acc:
+                new = self.labels.copy()
+                if ci == cj:
+                    new[rest[side]] = -1
+                    new[j] = -1
+                else:
+                    new[members] = ci
+                self._reset(new)
+                accepted += 1
+        return accepted
+
+    def _reset(self, labels: np.ndarray) -> None:
+        """Rebuild the state from labels (-1: a new cluster); after an accepted split–merge."""
+        labels = labels.copy()
+        labels[labels < 0] = labels.max() + 1
+        self.__init__(self.o, self.rs, self.single_ll, labels, self.table)
+
+
+class BatchAssociator:
+    """MAP search (``mode="map"``) or posterior sampling (``mode="sample"``) over partitions of static
+    2-D reports under paper 1's model, started from the greedy tracker's result.
+
+    ``variant`` "UU" or "TT"; S as ``tau`` (ExpS) or ``s_model``; ``gamma`` the gate on d²; ``chunk``
+    reports per Gibbs round. Map mode: per restart (the first from greedy, the others from all
+    singletons) ``anneal`` Gibbs sweeps with inverse temperature rising geometrically from 1 to
+    ``beta_max``, then zero-temperature sweeps (ICM) to convergence (at most ``icm_max``); the best
+    state visited wins. Sample mode: ``burn_in`` sweeps then ``samples`` sweeps, one sample each.
+    ``split_merge`` proposals per sweep with ``launch`` restricted-Gibbs launch scans. ``seed`` for a
+    ``numpy.random.Generator``; ``progress`` shows tqdm over sweeps. ``table=True`` (K <= 20, tests)
+    precomputes ln L for all 2^K subsets in one integrate call.
+    """
+
+    def __init__(
+        self, prior: TerrainPrior, variant: str = "TT", tau: float | None = None, s_model: SModel | None = None,
+        mode: str = "map", gamma: float = DEFAULT_GAMMA, chunk: int = CHUNK, anneal: int = 20, beta_max: float = 50.0,
+        icm_max: int = 50, restarts: int = 2, burn_in: int = 20, samples: int = 200, split_merge: int = 0,
+        launch: int = 3, seed: int = 0, progress: bool = False, table: bool = False,
+        integrator: Integrator | None = None, gater: Gater | None = None,
+    ) -> None:
+        _check_variant(variant)
+        if mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+        if (tau is None) == (s_model is None):
+            raise ValueError("give exactly one of tau= (S = exp(-n tau)) or s_model= (ExpS or PoissonS)")
+        self.s_model = ExpS(float(tau)) if s_model is None else s_model
+        if not isinstance(self.s_model, ExpS | PoissonS):
+            raise ValueError(f"s_model must be ExpS or PoissonS, got {self.s_model!r}")
+        if not (math.isfinite(gamma) and gamma > 0) or chunk < 1:
+            raise ValueError(f"gamma must be positive and finite and chunk >= 1, got {gamma}, {chunk}")
+        self.prior, self.variant, self.mode, self.gamma, self.chunk = prior, variant, mode, float(gamma), int(chunk)
+        self.anneal, self.beta_max, self.icm_max, self.restarts = int(anneal), float(beta_max), int(icm_max), int(restarts)
+        self.burn_in, self.samples, self.n_split_merge, self.launch = int(burn_in), int(samples), int(split_merge), int(launch)
+        self.seed, self.progress, self.use_table = seed, progress, table
+        # rounds are small: one numba thread below 4096 rows, as in greedy
+        self.integrator = _one_thread_when_small(integrator or _default_integrator(), 1)
+        self.gater = _one_thread_when_small(gater or _default_gater(), 2)
+        self.stamp = 0
+        self._blocked = np.zeros(0, np.int64)
+        self.stats_ = {"rounds": 0, "integrals": 0, "sweeps": 0, "split_merge_accepted": 0}
+
+    def blocked(self, K: int) -> np.ndarray:
+        """Per cluster id, the last round stamp that touched it (reused across rounds)."""
+        if self._blocked.size < K:
+            self._blocked = np.zeros(K, np.int64)
+            self.stamp = 1
+        return self._blocked
+
+    def _table(self, rs: ReportStats) -> np.ndarray:
+        K = rs.z.shape[0]
+        if K > 20:
+            raise ValueError(f"table=True enumerates 2^K subsets; K = {K} > 20")
+        masks = np.arange(1, 2**K, dtype=np.int64)
+        bits = ((masks[:, None] >> np.arange(K)) & 1).astype(float)
+        ll = cluster_log_lik(self.prior, self.variant, bits.sum(1).astype(np.int64), np.einsum("mk,kij->mij", bits, rs.vinv),
+                             bits @ rs.hv, bits @ rs.qv, bits @ rs.ldv, rs.origin, self.integrator)
+        return np.concatenate([[0.0], ll])
+
+    def chain(self, reports: Reports, labels: np.ndarray) -> _Chain:
+        """A chain at partition ``labels`` (used by :meth:`fit`; exposed for tests and benchmarks)."""
+        rs = ReportStats.of(reports)
+        table = self._table(rs) if self.use_table else None
+        if table is not None:
+            single_ll = table[np.left_shift(np.int64(1), np.arange(rs.z.shape[0], dtype=np.int64))]
+        else:
+            one = np.ones(rs.z.shape[0], np.int64)
+            single_ll = cluster_log_lik(self.prior, self.variant, one, rs.vinv, rs.hv, rs.qv, rs.ldv, rs.origin, self.integrator)
+        if not np.isfinite(single_ll).all():
+            bad = np.flatnonzero(~np.isfinite(single_ll))
+            raise ValueError(f"reports at indices {bad[:10].tolist()} have zero prior mass under their Gaussian")
+        return _Chain(self, rs, single_ll, np.asarray(labels), table)
+
+    def greedy(self, reports: Reports) -> np.ndarray:
+        """The greedy tracker's assignments (paper 1, Fig. 3) under the same variant and S."""
+        return associate(self.prior, reports, self.variant, s_model=self.s_model).assignments
+
+    def fit(self, reports: Reports, init: np.ndarray | None = None) -> BatchResult:
+        """Search (map) or sample (sample) from ``init`` labels (default: greedy).
+
+        Membership (sample mode): for report i with best-state cluster M(i) of size > 1, the mean over
+        samples of the fraction of M(i)'s other members that share i's sampled cluster; for a singleton,
+        the fraction of samples in which i is alone."""
+        rng = np.random.default_rng(self.seed)
+        init = self.greedy(reports) if init is None else np.asarray(init)
+        ch = self.chain(reports, init)
+        g_labels, g_lp = ch.labels.copy(), ch.lp
+        pairs = self._pairs(ch.rs)
+        best_lp, best = ch.lp, ch.labels.copy()
+        trace: list[float] = []
+        if self.mode == "map":
+            for restart in range(self.restarts + 1):
+                if restart:
+                    ch = _Chain(self, ch.rs, ch.single_ll, np.arange(len(reports)), ch.table)
+                betas = self.beta_max ** (np.arange(self.anneal) / max(self.anneal - 1, 1))
+                for beta in tqdm(np.concatenate([betas, np.full(self.icm_max, np.inf)]), desc=f"batch map {restart}", unit="sweep", disable=not self.progress):
+                    moved = ch.sweep(beta, rng)
+                    moved += ch.split_merge(beta, rng, pairs, self.n_split_merge, self.launch)
+                    self.stats_["sweeps"] += 1
+                    trace.append(ch.lp)
+                    if ch.lp > best_lp:
+                        best_lp, best = ch.lp, ch.labels.copy()
+                    if not np.isfinite(beta) and moved == 0:
+                        break
+            membership = np.ones(len(reports))
+            return self._result(best, best_lp, g_labels, g_lp, membership, trace)
+        kept = []
+        nd = []
+        co = np.zeros(pairs.shape[0])
+        for s in tqdm(range(self.burn_in + self.samples), desc="batch sample", unit="sweep", disable=not self.progress):
+            ch.sweep(1.0, rng)
+            self.stats_["split_merge_accepted"] += ch.split_merge(1.0, rng, pairs, self.n_split_merge, self.launch)
+            self.stats_["sweeps"] += 1
+            trace.append(ch.lp)
+            if ch.lp > best_lp:
+                best_lp, best = ch.lp, ch.labels.copy()
+            if s >= self.burn_in:
+                kept.append(ch.labels.astype(np.int32))
+                nd.append(int(ch.istate[0]))
+                co += ch.labels[pairs[:, 0]] == ch.labels[pairs[:, 1]]
+        res = self._result(best, best_lp, g_labels, g_lp, self._membership(best, kept), trace)
+        res.pairs, res.pair_prob = pairs, co / max(len(kept), 1)
+        res.nd_values, counts = np.unique(np.array(nd, np.int64), return_counts=True)
+        res.nd_prob = counts / max(len(kept), 1)
+        return res
+
+    def _pairs(self, rs: ReportStats) -> np.ndarray:
+        """Gated report pairs (i < j) with d² = (z_i−z_j)ᵀ(V_i+V_j)⁻¹(z_i−z_j) <= γ."""
+        a, b = self.gater(rs.z - rs.origin, rs.V, rs.z - rs.origin, rs.V, threshold=self.gamma)
+        a, b = np.asarray(a, np.int64), np.asarray(b, np.int64)
+        keep = a < b
+        return np.stack([a[keep], b[keep]], 1)
+
+    @staticmethod
+    def _membership(ref: np.ndarray, kept: list[np.ndarray]) -> np.ndarray:
+        size = np.bincount(ref)[ref]
+        acc = np.zeros(ref.size)
+        for lab in kept:
+            _, key = np.unique(lab.astype(np.int64) * (ref.max() + 1) + ref, return_inverse=True)
+            shared = np.bincount(key)[key]  # reports with the same sampled and best cluster, incl. i
+            alone = np.bincount(lab)[lab] == 1
+            acc += np.where(size > 1, (shared - 1) / np.maximum(size - 1, 1), alone)
+        return acc / max(len(kept), 1)
+
+    def _result(self, labels, lp, g_labels, g_lp, membership, trace) -> BatchResult:
+        _, inv = np.unique(labels, return_inverse=True)
+        return BatchResult(inv.astype(np.int64), float(lp), g_labels, float(g_lp), membership, trace=trace, stats=dict(self.stats_))
+
+
+def associate_batch(prior: TerrainPrior, reports: Reports, variant: str = "TT", tau: float | None = None,
+                    s_model: SModel | None = None, **kwargs) -> BatchResult:
+    """Batch form of :class:`BatchAssociator` (greedy start, then search or sampling)."""
+    return BatchAssociator(prior, variant, tau=tau, s_model=s_model, **kwargs).fit(reports)
+
+
+def batch_estimate(prior: TerrainPrior, reports: Reports, labels: np.ndarray, variant: str = "TT",
+                   integrator: Integrator | None = None) -> Estimate:
+    """Fused position densities of the clusters of ``labels`` (TT: times r, renormalised; UU: Gaussians)."""
+    grouped = Reports(reports.means, reports.covs, reports.times, np.asarray(labels, np.int64))
+    est = perfect_estimate(prior, grouped, terrain=variant == "TT", integrator=integrator)
+    return Estimate(est.means, est.covs, est.log_c, est.counts, est.terrain, np.full(est.counts.size, -1, np.int64))
