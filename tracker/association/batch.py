@@ -37,23 +37,27 @@ of this bound over the clusters outside the gate (:func:`gate_bound`).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 from tqdm.auto import tqdm
 
-from pipeline.prior.terrain import TerrainPrior
+from pipeline.prior import TerrainPrior
 from tracker.association.batch_kernels import apply_moves, select_round
 from tracker.association.greedy import (
     DEFAULT_GAMMA,
-    Estimate,
-    _one_thread_when_small,
     associate,
+    one_thread_when_small,
     perfect_estimate,
 )
+from tracker.integrate import Integrator
 from tracker.models.sfunc import ExpS, PoissonS, SModel, log_s
-from tracker.types.reports import Reports, check_gaussians
+from tracker.types.estimate import Estimate
+from tracker.types.reports import Reports
+
+if TYPE_CHECKING:  # gating loads on first use (_default_gater)
+    from tracker.gating import Gater
 
 VARIANTS = ("UU", "TT")
 MODES = ("map", "sample")
@@ -61,20 +65,16 @@ CHUNK = 65536
 """Reports per Gibbs round: larger rounds amortise gating and integrate calls, smaller ones conflict less."""
 _LOG_2PI = math.log(2.0 * math.pi)
 
-Integrator = Callable[..., np.ndarray]
-Gater = Callable[..., tuple]
-
-
 def _default_integrator() -> Integrator:
-    from tracker.integrate.terraces import integrate
+    from tracker.integrate import integrate_checked
 
-    return integrate
+    return integrate_checked
 
 
 def _default_gater() -> Gater:
-    from tracker.gating.gate import gate
+    from tracker.gating.gate import gate_unchecked
 
-    return gate
+    return gate_unchecked
 
 
 def _log(x: np.ndarray) -> np.ndarray:
@@ -102,7 +102,7 @@ class ReportStats:
 
     @classmethod
     def of(cls, reports: Reports) -> ReportStats:
-        z, V = check_gaussians(reports.means, reports.covs, "reports")
+        z, V = reports.means, reports.covs  # a Reports batch is checked when built
         if z.shape[1] != 2:
             raise ValueError(f"reports: positions must be 2-D, got dimension {z.shape[1]}")
         origin = z.mean(axis=0) if z.shape[0] else np.zeros(2)
@@ -468,8 +468,8 @@ class BatchAssociator:
         self.burn_in, self.samples, self.n_split_merge, self.launch = int(burn_in), int(samples), int(split_merge), int(launch)
         self.seed, self.progress, self.use_table = seed, progress, table
         # rounds are small: one numba thread below 4096 rows, as in greedy
-        self.integrator = _one_thread_when_small(integrator or _default_integrator(), 1)
-        self.gater = _one_thread_when_small(gater or _default_gater(), 2)
+        self.integrator = one_thread_when_small(integrator or _default_integrator(), 1)
+        self.gater = one_thread_when_small(gater or _default_gater(), 2)
         self.stamp = 0
         self._blocked = np.zeros(0, np.int64)
         self.stats_ = {"rounds": 0, "integrals": 0, "sweeps": 0, "split_merge_accepted": 0}

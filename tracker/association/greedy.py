@@ -132,7 +132,7 @@ def _log(x: np.ndarray) -> np.ndarray:
 # ----------------------------------------------------------------------------- the tracker
 
 
-def _one_thread_when_small(fn: Callable, size_arg: int) -> Callable:
+def one_thread_when_small(fn: Callable, size_arg: int) -> Callable:
     """Run ``fn`` on one numba thread when its argument ``size_arg`` has fewer than 4096 rows: on a
     loaded machine the launch of a parallel kernel for a few Gaussians costs ~100x the work."""
 
@@ -230,8 +230,8 @@ class Tracker:
         self.gamma = float(gamma)
         self.block = int(block)
         self.off_prior = off_prior
-        self.gater = _one_thread_when_small(gater or _default_gater(), 2)  # sized by the reports
-        self.integrator = _one_thread_when_small(integrator or integrate_checked, 1)
+        self.gater = one_thread_when_small(gater or _default_gater(), 2)  # sized by the reports
+        self.integrator = one_thread_when_small(integrator or integrate_checked, 1)
         xmin, ymin, xmax, ymax = prior.grid.bounds
         self.log_u = -math.log((xmax - xmin) * (ymax - ymin))
         self.log_rmax = _log_rmax(prior)

@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from pipeline.prior.terrain import TerrainPrior
+from pipeline.prior import TerrainPrior
 from tests.tracker.association.test_greedy import cos_prior, scenario, uniform_prior
 from tracker.association.batch import (
     BatchAssociator,
@@ -20,7 +20,7 @@ from tracker.association.batch import (
     log_posterior,
 )
 from tracker.association.batch_kernels import choose, move_log_weights
-from tracker.integrate.terraces import integrate
+from tracker.integrate import integrate
 from tracker.models.sfunc import ExpS, PoissonS, log_s
 from tracker.study.simulate import simulate
 from tracker.types.reports import Reports
