@@ -42,6 +42,14 @@ def attach_negative_values(argv: list[str]) -> list[str]:
     return out
 
 
+_OWN_LOGGERS = ("pipeline", "tracker", "common")
+"""Packages whose INFO messages a command prints; other libraries' only from WARNING up."""
+
+
+def _shown(record: logging.LogRecord) -> bool:
+    return record.levelno >= logging.WARNING or record.name.split(".", 1)[0] in _OWN_LOGGERS
+
+
 class _Prefixed(logging.Formatter):
     """``prog: message``, with ``warning:`` / ``error:`` before the message of those levels."""
 
@@ -70,6 +78,7 @@ def run_cli(prog: str, parser: argparse.ArgumentParser, argv: list[str] | None) 
     args.quiet = getattr(args, "quiet", False)
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(_Prefixed(prog))
+    handler.addFilter(_shown)
     root = logging.getLogger()
     old_level = root.level
     root.addHandler(handler)

@@ -22,7 +22,6 @@ from pipeline.config.region import RegionConfig, load_config
 from pipeline.prior.likelihood import LikelihoodModel
 from pipeline.prior.terrain import PriorError, TerrainPrior
 from pipeline.prior.write import sat_paths
-from pipeline.show.plots import plot_features, plot_prior
 
 
 def config_inputs(config: RegionConfig) -> dict[str, list[Path]]:
@@ -76,6 +75,8 @@ def cmd_build(args: argparse.Namespace) -> None:
 
 
 def cmd_show(args: argparse.Namespace) -> None:
+    from pipeline.show.plots import plot_features, plot_prior  # matplotlib loads only for `show`
+
     prior = TerrainPrior.read(args.prior)
     inputs = prior_inputs(args.prior)
     config = None

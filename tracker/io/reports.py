@@ -61,17 +61,23 @@ def read_reports(path: str | Path, layer: str | None = None) -> tuple[Reports, s
 
 def _read_csv(path: Path, what: str) -> pd.DataFrame:
     """A CSV file as a table; ``ValueError`` naming the file (``what`` it should hold) when it is missing,
-    empty, binary or not CSV."""
+    empty, binary (a NUL byte in its first 8 KiB, or not UTF-8) or not CSV."""
     try:
+        with open(path, "rb") as f:
+            binary = b"\0" in f.read(8192)
+        if binary:
+            raise ValueError(f"{path}: not a text CSV of {what} (binary file: it holds NUL bytes)")
         return pd.read_csv(path)
     except FileNotFoundError:
         raise ValueError(f"{path}: no such file") from None
+    except IsADirectoryError:
+        raise ValueError(f"{path}: is a folder, not a CSV of {what}") from None
     except UnicodeDecodeError as exc:
         raise ValueError(f"{path}: not a text CSV of {what} (byte {exc.start} is not UTF-8; binary file?)") from None
     except pd.errors.EmptyDataError:
         raise ValueError(f"{path}: empty file; a CSV of {what} needs a header row") from None
     except pd.errors.ParserError as exc:
-        raise ValueError(f"{path}: not a readable CSV of {what} ({exc})") from None
+        raise ValueError(f"{path}: not a readable CSV of {what} ({str(exc).strip()})") from None
 
 
 def _read_vector(path: Path, layer: str | None) -> tuple[pd.DataFrame, str | None]:
