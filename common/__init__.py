@@ -1,10 +1,21 @@
-"""Helpers shared by the pipeline and the tracker: atomic output commits, the Dask client, lazy package exports,
-the interactive map builder."""
+"""Helpers shared by the pipeline and the tracker: atomic output commits, a command's checked outputs,
+the command-line conventions, the Dask client, lazy package exports, the interactive map builder."""
 
 from common.exports import lazy_exports
 
 _EXPORTS = {
     "atomic_paths": "atomic",
+    "EXIT_ERROR": "cli",
+    "EXIT_OK": "cli",
+    "EXIT_USAGE": "cli",
+    "attach_negative_values": "cli",
+    "quiet_parent": "cli",
+    "run_cli": "cli",
+    "Output": "outputs",
+    "OutputError": "outputs",
+    "command_outputs": "outputs",
+    "input_files": "outputs",
+    "remove_stale_stages": "outputs",
     "get_client": "dask",
     "using_client": "dask",
     "lazy_exports": "exports",

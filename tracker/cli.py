@@ -6,14 +6,27 @@ A thin argparse layer: one function per subcommand, each parses nothing itself a
 from __future__ import annotations
 
 import argparse
-import re
 import sys
 from pathlib import Path
 
+from common.cli import quiet_parent, run_cli
+from common.outputs import Output, command_outputs, input_files
 from tracker.association import DEFAULT_GAMMA, VARIANTS
 from tracker.integrate import METHODS
 from tracker.models.motion import ConstantVelocity, Static
 from tracker.models.sfunc import ExpS, PoissonS
+
+
+def prior_inputs(path: Path) -> dict[str, list[Path]]:
+    """The files of a prior set read as an input: the GeoTIFF and its summed-area tables."""
+    from pipeline.prior import sat_paths
+
+    return {f"--prior {path}": [path, *sat_paths(path)]}
+
+
+def file_inputs(**paths: Path | None) -> dict[str, list[Path]]:
+    """``--name path`` inputs given on the command line (None: not given)."""
+    return {f"--{k.replace('_', '-')} {p}": input_files(p) for k, p in paths.items() if p is not None}
 
 
 def cmd_run(args: argparse.Namespace) -> None:
@@ -24,11 +37,13 @@ def cmd_run(args: argparse.Namespace) -> None:
 
     s_model = PoissonS(args.poisson_mu) if args.poisson_mu is not None else ExpS(args.tau)
     motion = ConstantVelocity(args.q, args.velocity_std) if args.motion == "cv" else Static()
-    result = track_files(
-        args.prior, args.reports, args.out, args.variant, s_model, motion, layer=args.layer,
-        ellipse_prob=args.ellipse_prob, assignments_csv=args.assignments, gamma=args.gamma,
-        off_prior=args.off_prior, integrator=partial(integrate_checked, method=args.integrator),
-    )
+    outputs = [Output("--out", args.out), Output("--assignments", args.assignments) if args.assignments else None]
+    with command_outputs(outputs, prior_inputs(args.prior) | file_inputs(reports=args.reports)) as out:
+        result = track_files(
+            args.prior, args.reports, out.path("--out"), args.variant, s_model, motion, layer=args.layer,
+            ellipse_prob=args.ellipse_prob, assignments_csv=out.path("--assignments") if args.assignments else None,
+            gamma=args.gamma, off_prior=args.off_prior, integrator=partial(integrate_checked, method=args.integrator),
+        )
     skipped = int((result.assignments < 0).sum())
     print(f"{len(result.assignments)} reports -> {result.n_detected} targets ({args.variant}, {s_model}); "
           f"{skipped} skipped; wrote {args.out}" + (f" and {args.assignments}" if args.assignments else ""))
@@ -40,8 +55,8 @@ def add_integrator_argument(p: argparse.ArgumentParser) -> None:
                         "~17 float32 per cell of memory) or the paper's terraces on its summed-area tables")
 
 
-def add_run_parser(sub) -> None:
-    p = sub.add_parser("run", help="associate reports (in file order) and write the estimated targets")
+def add_run_parser(sub, quiet: argparse.ArgumentParser) -> None:
+    p = sub.add_parser("run", parents=[quiet], help="associate reports (in file order) and write the estimated targets")
     p.add_argument("--prior", type=Path, required=True, help="prior GeoTIFF (terrain-prior build)")
     p.add_argument("--reports", type=Path, required=True, help="CSV or GeoPackage: x, y, time, cov_xx, cov_xy, cov_yy")
     p.add_argument("--layer", help="layer of a multi-layer reports file")
@@ -71,16 +86,19 @@ def cmd_experiment(args: argparse.Namespace) -> None:
         sensor=AirborneSensor(azimuth_std_rad=args.azimuth_std_mrad / 1000.0, range_std_m=args.range_std_m),
         poisson_mu=args.poisson_mu, integrator=args.integrator,
     )
-    if args.scheduler:
-        from common.dask import get_client  # dask loads only for cluster runs
-        from tracker.study.sweep import run_and_write_dask
+    title = args.title or ""
+    with command_outputs([Output("--out", args.out, folder=True)], prior_inputs(args.prior)) as out:
+        if args.scheduler:
+            from common.dask import get_client  # dask loads only for cluster runs
+            from tracker.study.sweep import run_and_write_dask
 
-        with get_client(args.scheduler) as client:
-            summary, paths = run_and_write_dask(args.prior, args.out, config, client, progress=not args.quiet,
-                                                title=args.title or "")
-    else:
-        summary, paths = run_and_write(args.prior, args.out, config, workers=args.workers, progress=not args.quiet,
-                                       title=args.title or "")
+            with get_client(args.scheduler) as client:
+                summary, paths = run_and_write_dask(args.prior, out.path("--out"), config, client,
+                                                    progress=not args.quiet, title=title)
+        else:
+            summary, paths = run_and_write(args.prior, out.path("--out"), config, workers=args.workers,
+                                           progress=not args.quiet, title=title)
+        paths = {k: [out.final(p) for p in v] if isinstance(v, list) else out.final(v) for k, v in paths.items()}
     for v, d in summary["variants"].items():
         print(f"{v}: best tau {d['best_tau']:+.2f}, mean score x10^4.5 {d['best_mean_score_x10^4.5']:.2f}, "
               f"|N_D^ - N_D| {d['mean_nd_abs_error_at_best_tau']:.2f}"
@@ -88,8 +106,8 @@ def cmd_experiment(args: argparse.Namespace) -> None:
     print(f"wrote {paths['results']}, {paths['summary']}, {paths['table']} and {len(paths['figures'])} figures")
 
 
-def add_experiment_parser(sub) -> None:
-    p = sub.add_parser("experiment", help="paper 1's simulation: UU, UT, TT over a tau grid on seeded data sets")
+def add_experiment_parser(sub, quiet: argparse.ArgumentParser) -> None:
+    p = sub.add_parser("experiment", parents=[quiet], help="paper 1's simulation: UU, UT, TT over a tau grid on seeded data sets")
     p.add_argument("--prior", type=Path, required=True, help="prior GeoTIFF (terrain-prior build)")
     p.add_argument("--datasets", type=int, default=28, help="number of data sets (seeds seed..seed+n-1); default 28")
     p.add_argument("--reports", type=int, default=100, help="reports per data set; default 100")
@@ -103,7 +121,6 @@ def add_experiment_parser(sub) -> None:
     add_integrator_argument(p)
     p.add_argument("--workers", type=int, help="local worker processes (default: all cores; 1 runs inline)")
     p.add_argument("--scheduler", metavar="ADDRESS", help="Dask scheduler to spread the data sets over, e.g. tcp://10.0.0.5:8786 (instead of --workers)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--title", help="figure title prefix (default: the prior's file name)")
     p.add_argument("--out", type=Path, required=True, help="output folder (results, summary.json, table1.md, PNGs)")
     p.set_defaults(func=cmd_experiment)
@@ -114,17 +131,18 @@ def cmd_simulate(args: argparse.Namespace) -> None:
     from tracker.io.reports import write_reports, write_targets
     from tracker.study.simulate import simulate
 
-    scenario = simulate(TerrainPrior.read(args.prior), args.seed, args.targets, args.reports)
-    write_reports(args.out, scenario.reports)
+    outputs = [Output("--out", args.out), Output("--truth-out", args.truth_out) if args.truth_out else None]
+    with command_outputs(outputs, prior_inputs(args.prior)) as out:
+        scenario = simulate(TerrainPrior.read(args.prior), args.seed, args.targets, args.reports)
+        write_reports(out.path("--out"), scenario.reports)
+        if args.truth_out:
+            write_targets(out.path("--truth-out"), scenario.targets)
     msg = f"{len(scenario.reports)} reports of {scenario.n_detected} of {len(scenario.targets)} targets; wrote {args.out}"
-    if args.truth_out:
-        write_targets(args.truth_out, scenario.targets)
-        msg += f" and {args.truth_out}"
-    print(msg)
+    print(msg + (f" and {args.truth_out}" if args.truth_out else ""))
 
 
-def add_simulate_parser(sub) -> None:
-    p = sub.add_parser("simulate", help="simulate one data set of the paper's experiment (targets from the prior, airborne sensor)")
+def add_simulate_parser(sub, quiet: argparse.ArgumentParser) -> None:
+    p = sub.add_parser("simulate", parents=[quiet], help="simulate one data set of the paper's experiment (targets from the prior, airborne sensor)")
     p.add_argument("--prior", type=Path, required=True, help="prior GeoTIFF (terrain-prior build)")
     p.add_argument("--seed", type=int, default=0, help="random seed")
     p.add_argument("--targets", type=int, default=200, help="targets drawn over the central 14 km (kept: the central half)")
@@ -142,23 +160,25 @@ def cmd_show(args: argparse.Namespace) -> None:
 
     if not (args.png or args.html):
         raise ValueError("show: give --png, --html or both")
-    prior = TerrainPrior.read(args.prior)
-    reports, _ = read_reports(args.reports)
-    means, covs, counts = read_tracks(args.tracks)
-    targets = read_targets(args.truth) if args.truth else None
-    if args.png:
-        tracks_figure(prior, reports.means, reports.covs, means, covs, args.png, targets=targets)
-        print(f"wrote {args.png}")
-    if args.html:
-        from tracker.study.maps import tracks_map  # folium loads only for --html
+    inputs = prior_inputs(args.prior) | file_inputs(reports=args.reports, tracks=args.tracks, truth=args.truth)
+    outputs = [Output("--png", args.png) if args.png else None, Output("--html", args.html) if args.html else None]
+    with command_outputs(outputs, inputs) as out:
+        prior = TerrainPrior.read(args.prior)
+        reports, _ = read_reports(args.reports)
+        means, covs, counts = read_tracks(args.tracks)
+        targets = read_targets(args.truth) if args.truth else None
+        if args.png:
+            tracks_figure(prior, reports.means, reports.covs, means, covs, out.path("--png"), targets=targets)
+        if args.html:
+            from tracker.study.maps import tracks_map  # folium loads only for --html
 
-        tracks_map(prior, reports.means, reports.covs, means, covs, counts, targets=targets,
-                   basemap=args.basemap).save(args.html, title="reports and estimated targets")
-        print(f"wrote {args.html}")
+            tracks_map(prior, reports.means, reports.covs, means, covs, counts, targets=targets,
+                       basemap=args.basemap).save(out.path("--html"), title="reports and estimated targets")
+    print("wrote " + ", ".join(str(o.path) for o in outputs if o is not None))
 
 
-def add_show_parser(sub) -> None:
-    p = sub.add_parser("show", help="draw reports and estimated targets over the prior as a PNG map and/or an interactive HTML map")
+def add_show_parser(sub, quiet: argparse.ArgumentParser) -> None:
+    p = sub.add_parser("show", parents=[quiet], help="draw reports and estimated targets over the prior as a PNG map and/or an interactive HTML map")
     p.add_argument("--prior", type=Path, required=True, help="prior GeoTIFF")
     p.add_argument("--reports", type=Path, required=True, help="reports CSV or GeoPackage")
     p.add_argument("--tracks", type=Path, required=True, help="tracks GeoPackage (terrain-track run)")
@@ -172,58 +192,33 @@ def add_show_parser(sub) -> None:
 def cmd_calibrate(args: argparse.Namespace) -> None:
     from tracker.gating.calibrate import calibrate
 
-    constants = calibrate(out=args.out)
+    with command_outputs([Output("--out", args.out)], {}) as out:
+        constants = calibrate(out=out.path("--out"))
     print(f"gating cost constants (s per unit): {constants}; wrote {args.out} "
           f"(use: gate(..., constants=CostConstants.read({str(args.out)!r})))")
 
 
-def add_calibrate_parser(sub) -> None:
-    p = sub.add_parser("calibrate", help="time gate() on this machine (about 10 s) and write the cost model's constants")
+def add_calibrate_parser(sub, quiet: argparse.ArgumentParser) -> None:
+    p = sub.add_parser("calibrate", parents=[quiet], help="time gate() on this machine (about 10 s) and write the cost model's constants")
     p.add_argument("--out", type=Path, default=Path("gating_costs.json"),
                    help="JSON file to write (default gating_costs.json); read it with CostConstants.read")
     p.set_defaults(func=cmd_calibrate)
 
 
 def make_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="terrain-track", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="terrain-track", description=__doc__.splitlines()[0],
+                                     epilog="exit codes: 0 done, 1 error (an 'error:' line), 2 usage error")
+    parser.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     sub = parser.add_subparsers(dest="command", required=True)
-    add_run_parser(sub)
-    add_experiment_parser(sub)
-    add_simulate_parser(sub)
-    add_show_parser(sub)
-    add_calibrate_parser(sub)
+    quiet = quiet_parent()
+    for add in (add_run_parser, add_experiment_parser, add_simulate_parser, add_show_parser, add_calibrate_parser):
+        add(sub, quiet)
     return parser
 
 
-_NEGATIVE_VALUE = re.compile(r"^-\.?\d[\d.:,-]*$")
-"""A value such as "-3:3:0.25" or "-1,1": argparse would take it for an option."""
-_NEGATIVE_VALUE_OPTIONS = ("--tau",)
-"""Options whose value may start with '-' (τ values, ranges and lists)."""
-
-
-def _attach_negative_values(argv: list[str]) -> list[str]:
-    """``--tau -3:3:0.25`` as ``--tau=-3:3:0.25``, the form argparse documents for values that start
-    with '-' (it reads a separate one as an option unless it is a plain negative number)."""
-    out: list[str] = []
-    i = 0
-    while i < len(argv):
-        if argv[i] in _NEGATIVE_VALUE_OPTIONS and i + 1 < len(argv) and _NEGATIVE_VALUE.match(argv[i + 1]):
-            out.append(f"{argv[i]}={argv[i + 1]}")
-            i += 2
-        else:
-            out.append(argv[i])
-            i += 1
-    return out
-
-
 def main(argv: list[str] | None = None) -> int:
-    args = make_parser().parse_args(_attach_negative_values(sys.argv[1:] if argv is None else list(argv)))
-    try:
-        args.func(args)
-    except ValueError as exc:  # every input problem is a ValueError naming the file, column or rows
-        print(f"terrain-track: error: {exc}", file=sys.stderr)
-        return 1
-    return 0
+    """Run ``terrain-track`` on ``argv``; the exit code (0 done, 1 error, 2 usage: :func:`common.cli.run_cli`)."""
+    return run_cli("terrain-track", make_parser(), argv)
 
 
 if __name__ == "__main__":

@@ -11,6 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pyogrio
 import shapely
 
 from pipeline.gis.crs import transformer
@@ -27,6 +28,7 @@ def read_targets(
         raise ValueError(f"{path}: targets file not found")
     if path.suffix.lower() == ".csv":
         return _read_csv(path, grid, x, y, crs)
+    _check_layer(path, layer)
     geoms = read_vector(LayerSpec("targets", path, "vector", layer=layer), grid).geometries
     if geoms.size == 0:
         raise ValueError(f"{path}" + (f", layer {layer!r}" if layer else "") + ": no target geometries")
@@ -34,6 +36,19 @@ def read_targets(
     if len(pts) != len(geoms):
         raise ValueError(f"{path}: some target geometries have no centroid")
     return pts
+
+
+def _check_layer(path: Path, layer: str | None) -> None:
+    """The layer choice of a targets file, refused with the fix (``layer=``, i.e. ``--layer``): the
+    targets file is no config layer, so read_vector's ``[layers.*]`` hint does not apply."""
+    try:
+        available = [str(n) for n in pyogrio.list_layers(path)[:, 0]]
+    except pyogrio.errors.DataSourceError:
+        return  # read_vector names the unreadable file
+    if layer is None and len(available) > 1:
+        raise ValueError(f"{path}: the targets file has several layers {available}; pick one with --layer NAME (layer=)")
+    if layer is not None and layer not in available:
+        raise ValueError(f"{path}: no layer {layer!r} (--layer); the targets file has {available}")
 
 
 def _read_csv(path: Path, grid: Grid, x: str, y: str, crs: str | None) -> np.ndarray:

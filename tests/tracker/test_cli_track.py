@@ -108,3 +108,13 @@ def test_run_bad_inputs(files, capsys):
     assert "differs from the prior" in capsys.readouterr().err
     assert main(["run", "--prior", str(d / "missing.tif"), "--reports", str(d / "reports.csv"), "--out", str(d / "z.gpkg")]) == 1
     assert "missing.tif" in capsys.readouterr().err
+
+
+def test_track_files_commits_tracks_and_assignments_together(files, tmp_path):
+    """The API's outputs are one commit: assignments under a regular file leave no tracks file either."""
+    from tracker.run import track_files
+
+    d, _, _ = files
+    with pytest.raises(OSError):
+        track_files(d / "prior.tif", d / "reports.csv", tmp_path / "t.gpkg", assignments_csv=d / "reports.csv" / "a.csv")
+    assert list(tmp_path.iterdir()) == []

@@ -1,7 +1,13 @@
 """Association: the greedy association-estimation tracker of paper 1 (Fig. 3) with its numba walk, and the
 batch search and sampler over partitions under the same model (:mod:`tracker.association.batch`)."""
 
-from tracker.association.batch import BatchAssociator, BatchResult, associate_batch, batch_estimate, log_posterior
+from tracker.association.batch import (
+    BatchAssociator,
+    BatchResult,
+    associate_batch,
+    batch_estimate,
+    log_posterior,
+)
 from tracker.association.greedy import (
     BLOCK,
     DEFAULT_GAMMA,

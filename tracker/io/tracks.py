@@ -79,6 +79,9 @@ def read_tracks(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     except (pyogrio.errors.DataSourceError, pyogrio.errors.DataLayerError) as exc:
         raise ValueError(f"{path}: cannot read layer 'targets' of a tracks file ({exc})") from exc
     table = dict(zip(meta["fields"], field_data, strict=True))
+    missing = [c for c in ("x", "y", *COV_COLUMNS, "count") if c not in table]
+    if missing:
+        raise ValueError(f"{path}: layer 'targets' lacks columns {missing}; is it a tracks file of terrain-track run?")
     means = np.column_stack([table["x"], table["y"]]).astype(np.float64)
     covs = covs_from_columns(*(table[c] for c in COV_COLUMNS))
     return means, covs, np.asarray(table["count"], dtype=np.int64)

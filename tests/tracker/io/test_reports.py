@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -71,3 +73,32 @@ def test_targets_round_trip(tmp_path):
     path = write_targets(tmp_path / "t.csv", targets)
     np.testing.assert_array_equal(read_targets(path), targets)
     np.testing.assert_array_equal(pd.read_csv(path)["truth"], np.arange(7))
+
+
+@pytest.mark.parametrize(("content", "message"), [
+    (b"", "empty file; a CSV of {what} needs a header row"),
+    (b"\x89PNG\r\n\x1a\n\x00\x00\x00\rIHDR", "not a text CSV of {what} (binary file"),
+    (b"x,y\n\xff\xfe,1\n", "not a text CSV of {what} (byte"),
+    (b'x,y\n"1,2\n', "not a readable CSV of {what}"),
+])
+def test_unreadable_csvs_are_named(tmp_path, content, message):
+    """Empty, binary, non-UTF-8 and malformed CSVs: the file and what it should hold, not pandas' words."""
+    path = tmp_path / "f.csv"
+    path.write_bytes(content)
+    with pytest.raises(ValueError, match="^" + re.escape(f"{path}: " + message.format(what="reports"))):
+        read_reports(path)
+    with pytest.raises(ValueError, match="^" + re.escape(f"{path}: " + message.format(what="true targets"))):
+        read_targets(path)
+
+
+def test_targets_csv_errors_name_the_file(tmp_path):
+    path = tmp_path / "t.csv"
+    pd.DataFrame({"truth": [0], "x": [1.0]}).to_csv(path, index=False)
+    with pytest.raises(ValueError, match=re.escape(f"{path}: missing target columns ['y']")):
+        read_targets(path)
+    pd.DataFrame({"x": [1.0, 2.0], "y": ["a", 3.0]}).to_csv(path, index=False)
+    with pytest.raises(ValueError, match=re.escape(f"{path}: target columns ['x', 'y'] must be numeric")):
+        read_targets(path)
+    pd.DataFrame({"x": [1.0, np.nan], "y": [2.0, 3.0]}).to_csv(path, index=False)
+    with pytest.raises(ValueError, match=re.escape(f"{path}: missing or non-finite x/y on data rows [1]")):
+        read_targets(path)

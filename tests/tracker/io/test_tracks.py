@@ -6,11 +6,12 @@ import math
 
 import numpy as np
 import pandas as pd
+import pytest
 import shapely
 from pyogrio import raw
 
 from tracker.io.columns import COV_COLUMNS, cov_columns, covs_from_columns
-from tracker.io.tracks import ELLIPSE_VERTICES, write_assignments, write_tracks
+from tracker.io.tracks import ELLIPSE_VERTICES, read_tracks, write_assignments, write_tracks
 from tracker.types.estimate import Estimate
 
 
@@ -57,3 +58,12 @@ def test_cov_columns_round_trip():
     columns = cov_columns(covs)
     assert tuple(columns) == COV_COLUMNS
     np.testing.assert_array_equal(covs_from_columns(*columns.values()), covs)
+
+
+def test_read_tracks_names_a_file_that_is_no_tracks_file(tmp_path):
+    """A GeoPackage with a ``targets`` layer but not the tracks columns: named, not a KeyError."""
+    path = tmp_path / "other.gpkg"
+    raw.write(path, shapely.to_wkb(shapely.points(np.zeros((1, 2)))), [np.array([1])], ["n"], layer="targets",
+              driver="GPKG", geometry_type="Point", crs="EPSG:32634")
+    with pytest.raises(ValueError, match=r"other\.gpkg: layer 'targets' lacks columns \['x', 'y', 'cov_xx'"):
+        read_tracks(path)
