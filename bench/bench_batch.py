@@ -7,12 +7,15 @@ from __future__ import annotations
 import resource
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
 from bench.bench_tracker import scenario, synthetic_prior
 from tracker.association.batch import BatchAssociator
 from tracker.association.greedy import Tracker
+
+REGION = Path(__file__).resolve().parents[1] / "terrain_data" / "region.toml"
 
 
 def run(quick: bool = False) -> dict:
@@ -49,11 +52,10 @@ def calibration(n_datasets: int = 10, samples: int = 200, variant: str = "TT") -
     central window): per bin [p, p+0.1), the fraction of gated pairs truly from one target."""
     from pipeline.build.region import build_region_prior
     from pipeline.config.region import load_config
-    from tests.pipeline.gis_helpers import REGION_TOML
     from tracker.models.sfunc import PoissonS
     from tracker.study.simulate import simulate
 
-    prior = build_region_prior(load_config(REGION_TOML), progress=False)
+    prior = build_region_prior(load_config(REGION), progress=False)
     g = prior.grid
     rows, cols = np.mgrid[0 : g.height, 0 : g.width]
     x = g.transform.c + (cols + 0.5) * g.dx
