@@ -20,6 +20,7 @@ from pipeline.features.slope import slope_classes, slope_deg
 from pipeline.features.stack import Feature, FeatureStack
 from pipeline.gis.grid import NODATA_CODE
 from pipeline.gis.layers import LayerError, VectorLayer, read_dem, read_raster, read_vector
+from pipeline.gis.lidar import LidarError, LidarSurface
 from pipeline.prior.likelihood import LikelihoodModel
 from pipeline.prior.terrain import PriorError, TerrainPrior
 from pipeline.prior.write import geotiff_profile
@@ -31,12 +32,25 @@ class _Layers:
     def __init__(self, config: RegionConfig) -> None:
         self.config = config
         self._vectors: dict[tuple[str, tuple[str, ...]], VectorLayer] = {}
+        self._surfaces: dict[str, LidarSurface] = {}
 
     def vector(self, name: str, columns: tuple[str, ...] = ()) -> VectorLayer:
         key = (name, columns)
         if key not in self._vectors:
             self._vectors[key] = read_vector(self.config.layers[name], self.config.grid, list(columns))
         return self._vectors[key]
+
+    def surface(self, name: str) -> LidarSurface:
+        """Elevation and slope of a point-cloud layer, gridded once for the features sharing it."""
+        if name not in self._surfaces:
+            from pipeline.gis.lidar import lidar_surface  # laspy / open3d are an optional extra
+
+            spec = self.config.layers[name]
+            try:
+                self._surfaces[name] = lidar_surface(spec.path, self.config.grid, crs=spec.crs, keep=spec.points)
+            except LidarError as exc:
+                raise LidarError(f"[layers.{name}]: {exc}") from None
+        return self._surfaces[name]
 
     def geometries(self, names: tuple[str, ...]) -> np.ndarray:
         parts = [self.vector(n).geometries for n in names]
@@ -60,13 +74,16 @@ def _distance_feature(spec: FeatureSpec, layers: _Layers, grid) -> Feature:
 def _slope_feature(spec: FeatureSpec, layers: _Layers, grid) -> Feature:
     layer = layers.config.layers[spec.layer]
     if layer.kind == "pointcloud":
-        from pipeline.gis.lidar import lidar_surface  # open3d is an optional extra
-
-        # a point cloud carries no CRS: its x, y are taken to be in the grid CRS (metres)
-        slope = lidar_surface(layer.path, grid).slope
+        slope = layers.surface(spec.layer).slope
     else:
         slope = slope_deg(read_dem(layer, grid), grid.dx, grid.dy)
     return Feature(spec.name, slope, "continuous", units="deg")
+
+
+def _elevation_feature(spec: FeatureSpec, layers: _Layers, grid) -> Feature:
+    layer = layers.config.layers[spec.layer]
+    z = layers.surface(spec.layer).elevation if layer.kind == "pointcloud" else read_dem(layer, grid)
+    return Feature(spec.name, z, "continuous", units="m")
 
 
 def _categories_feature(spec: FeatureSpec, layers: _Layers, grid) -> Feature:
@@ -106,6 +123,7 @@ _BUILDERS = {
     "mask": _mask_feature,
     "distance": _distance_feature,
     "slope": _slope_feature,
+    "elevation": _elevation_feature,
     "categories": _categories_feature,
     "raster": _raster_feature,
 }

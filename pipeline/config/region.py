@@ -16,8 +16,9 @@ resolved relative to the config file. Example (``terrain_data/region.toml`` is a
     where = "highway IN ('primary', 'secondary')"   # optional OGR SQL attribute filter
     restore_index = false              # shapefiles: rebuild a stale .shx on a temporary copy
 
-    [layers.dem]                       # raster (by suffix .tif/.tiff/.vrt/.img/.asc) or point cloud (.ply/.pcd/.xyz)
-    path = "dem.tif"
+    [layers.dem]                       # raster (by suffix .tif/.tiff/.vrt/.img/.asc) or point cloud (.las/.laz/.ply/.pcd/.xyz)
+    path = "dem.tif"                   # point clouds: optional crs (overrides the file's; needed by a LAS without one),
+                                       # LAS/LAZ: classes = [2] (ground, default) or "all", returns = "all"|"first"|"last"|"single"|[1, 2]
 
     [features.water]                   # see FEATURE_TYPES for every type and its keys
     type = "mask"
@@ -42,6 +43,7 @@ from rasterio.crs import CRS
 from pipeline.gis.crs import transformer
 from pipeline.gis.grid import Grid, GridError
 from pipeline.gis.layers import LayerSpec
+from pipeline.gis.lidar import GROUND, LAS_SUFFIXES, LidarError, PointFilter
 from pipeline.gis.lidar import SUFFIXES as POINTCLOUD_SUFFIXES
 from pipeline.prior.likelihood import LikelihoodError, LikelihoodModel, read_toml
 
@@ -67,6 +69,7 @@ class FeatureSpec:
       optional ``max_distance_m``, ``margin_m`` (metres around the grid where the layers still count,
       so a road just outside the bounds is not ignored; default 0).
     - ``slope``: ``layer`` (a DEM raster or point cloud) -> slope in degrees.
+    - ``elevation``: ``layer`` (a DEM raster or point cloud) -> ground elevation in metres.
     - ``classes``: ``source`` (a continuous feature), ``breaks`` (ascending, units of the source),
       optional ``labels`` (one more than breaks) -> categories [-inf, b0), [b0, b1), ..., [bn, inf).
     - ``categories``: ``layer`` (vector polygons) and ``attribute`` -> one category per attribute value,
@@ -104,6 +107,7 @@ FEATURE_TYPES: dict[str, tuple[set[str], set[str]]] = {
     "mask": ({"layers"}, {"buffer_m", "all_touched", "labels"}),
     "distance": ({"layers"}, {"max_distance_m", "margin_m", "buffer_m", "all_touched"}),
     "slope": ({"layer"}, set()),
+    "elevation": ({"layer"}, set()),
     "classes": ({"source", "breaks"}, {"labels"}),
     "categories": ({"layer", "attribute"}, {"classes", "background"}),
     "raster": ({"layer"}, {"categorical", "labels", "units"}),
@@ -220,7 +224,7 @@ def _layer_kind(path: Path) -> str:
 
 def _parse_layer(source: Path, name: str, d: Any) -> LayerSpec:
     t = _Table(source, f"layers.{name}", d)
-    t.check_keys({"path", "layer", "where", "restore_index", "band", "kind"})
+    t.check_keys({"path", "layer", "where", "restore_index", "band", "kind", "crs", "classes", "returns"})
     path = Path(t.get("path", str, what="a file path"))
     if not path.is_absolute():
         path = source.parent / path
@@ -233,6 +237,21 @@ def _parse_layer(source: Path, name: str, d: Any) -> LayerSpec:
     band = t.get("band", int, 1, "a band number")
     if band < 1:
         raise t.err("band", f"bands count from 1, got {band}")
+    for key in ("crs", "classes", "returns"):
+        if key in t.d and (kind != "pointcloud" or (key != "crs" and path.suffix.lower() not in LAS_SUFFIXES)):
+            raise t.err(key, f"only {'point clouds' if key == 'crs' else 'LAS/LAZ point clouds'} take {key}, {path.name} is a {kind} layer")
+    crs = t.get("crs", str, None, 'a CRS such as "EPSG:2992"')
+    points = None
+    if "classes" in t.d or "returns" in t.d:
+        classes = t.get("classes", (list, str), [GROUND], 'a list of class codes or "all"')
+        returns = t.get("returns", (list, str), "all", 'a list of return numbers or "all", "first", "last", "single"')
+        classes = None if classes == "all" else tuple(classes) if isinstance(classes, list) else classes
+        returns = returns if isinstance(returns, str) else tuple(returns)
+        for key, kw in (("classes", {"classes": classes}), ("returns", {"classes": classes, "returns": returns})):
+            try:
+                points = PointFilter(**kw)
+            except LidarError as exc:
+                raise t.err(key, str(exc)) from None
     return LayerSpec(
         name=name,
         path=path,
@@ -241,6 +260,8 @@ def _parse_layer(source: Path, name: str, d: Any) -> LayerSpec:
         where=t.get("where", str, None),
         restore_index=restore_index,
         band=band,
+        crs=None if crs is None else _parse_crs(t, "crs", crs),
+        points=points,
     )
 
 
@@ -278,7 +299,7 @@ def _parse_feature(source: Path, name: str, d: Any, layers: dict[str, LayerSpec]
     if ftype == "distance":
         kw["max_distance_m"] = t.number("max_distance_m", None, positive=True)
         kw["margin_m"] = t.number("margin_m", 0.0, nonneg=True)
-    if ftype == "slope":
+    if ftype in ("slope", "elevation"):
         kw["layers"] = layer_refs("layer", ("raster", "pointcloud"))
     if ftype == "classes":
         kw["source"] = t.get("source", str, what="a continuous feature name")
@@ -337,7 +358,7 @@ def parse_config(d: dict, source: Path) -> RegionConfig:
     for f in features.values():
         if f.type == "classes":
             src = features.get(f.source)
-            if src is None or src.type not in ("slope", "distance") and not (src.type == "raster" and not src.categorical):
+            if src is None or src.type not in ("slope", "elevation", "distance") and not (src.type == "raster" and not src.categorical):
                 raise ConfigError(f"{source}: features.{f.name}.source: {f.source!r} is not a continuous feature of this config")
     model = None
     if "likelihood" in d:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -79,6 +80,22 @@ class FeatureStack:
 
     def __iter__(self):
         return iter(self.features.values())
+
+    def to_xarray(self):
+        """The features as an ``xarray.Dataset``, one variable per feature on dims (y, x) with
+        cell-centre coordinates in metres and the CRS attached with rioxarray. Variable attrs: "kind",
+        "units" and, for categorical features, "labels" (JSON code -> name); nodata is
+        ``NODATA_CODE`` (categorical) or NaN (continuous)."""
+        import xarray as xr
+
+        arrays = {}
+        for f in self:
+            attrs = {"kind": f.kind, "units": f.units}
+            if f.kind == "categorical":
+                attrs["labels"] = json.dumps({str(k): v for k, v in f.labels.items()})
+            nodata = NODATA_CODE if f.kind == "categorical" else np.nan
+            arrays[f.name] = self.grid.to_xarray(f.values, f.name, attrs, nodata)
+        return xr.Dataset(arrays).rio.write_crs(self.grid.crs.to_wkt()).rio.write_transform(self.grid.transform)
 
     def sample(self, x: np.ndarray, y: np.ndarray) -> dict[str, np.ndarray]:
         """Feature values at map points (metres); points off the grid get no data."""

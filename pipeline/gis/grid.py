@@ -101,11 +101,26 @@ class Grid:
         inside = (u >= 0) & (u < self.width) & (v >= 0) & (v < self.height)
         return np.where(inside, v, 0).astype(np.intp), np.where(inside, u, 0).astype(np.intp), inside
 
-    def cell_centres(self) -> tuple[np.ndarray, np.ndarray]:
-        """Map coordinates (x, y) of cell centres as two (height, width) arrays."""
+    def axes(self) -> tuple[np.ndarray, np.ndarray]:
+        """Cell-centre x of each column (west to east) and y of each row (north to south), metres."""
         xs = self.transform.c + (np.arange(self.width) + 0.5) * self.dx
         ys = self.transform.f - (np.arange(self.height) + 0.5) * self.dy
-        return np.meshgrid(xs, ys)
+        return xs, ys
+
+    def cell_centres(self) -> tuple[np.ndarray, np.ndarray]:
+        """Map coordinates (x, y) of cell centres as two (height, width) arrays."""
+        return np.meshgrid(*self.axes())
+
+    def to_xarray(self, values: np.ndarray, name: str, attrs: dict | None = None, nodata: float | None = None):
+        """An (H, W) array on this grid as an xarray DataArray: dims (y, x), cell-centre coordinates
+        in metres, the CRS, transform and ``nodata`` attached the rioxarray way (``.rio``)."""
+        import rioxarray  # noqa: F401  (registers the .rio accessor; imported here to keep grids light)
+        import xarray as xr
+
+        xs, ys = self.axes()
+        da = xr.DataArray(values, dims=("y", "x"), coords={"x": xs, "y": ys}, name=name, attrs=dict(attrs or {}))
+        da = da.rio.write_crs(self.crs.to_wkt()).rio.write_transform(self.transform)
+        return da if nodata is None else da.rio.write_nodata(nodata, encoded=False)
 
     def window_grid(self, row_off: int, col_off: int, height: int, width: int) -> Grid:
         """The sub-grid of a window (rasterio's row/col offsets), same CRS and cell size."""

@@ -23,11 +23,13 @@ import pyogrio.raw
 import rasterio
 import rasterio.errors
 import shapely
+from rasterio.crs import CRS
 from rasterio.enums import Resampling
 from rasterio.warp import reproject
 
 from pipeline.gis.crs import to_pyproj, transformer
 from pipeline.gis.grid import NODATA_CODE, Grid
+from pipeline.gis.lidar import PointFilter
 
 log = logging.getLogger(__name__)
 
@@ -43,7 +45,8 @@ class LayerWarning(UserWarning):
 @dataclass(frozen=True)
 class LayerSpec:
     """How to read one input layer: a vector layer (``layer`` of a multi-layer file, optional OGR SQL
-    ``where``), a raster ``band``, or a LiDAR point cloud; ``path`` absolute or relative to the working folder."""
+    ``where``), a raster ``band``, or a LiDAR point cloud (its ``crs`` when the file has none or a wrong
+    one, and for LAS/LAZ which ``points`` to keep); ``path`` absolute or relative to the working folder."""
 
     name: str
     path: Path
@@ -52,6 +55,8 @@ class LayerSpec:
     where: str | None = None
     restore_index: bool = False
     band: int = 1
+    crs: CRS | None = None
+    points: PointFilter | None = None
 
 
 @dataclass(frozen=True)

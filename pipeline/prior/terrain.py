@@ -205,6 +205,13 @@ class TerrainPrior:
         y = grid.transform.f - (rows + rng.random(n)) * grid.dy
         return np.stack([x, y], axis=1)
 
+    def to_xarray(self):
+        """The density as an ``xarray.DataArray`` named "density" (per m^2), dims (y, x) with cell-centre
+        coordinates in metres and the CRS and transform attached with rioxarray, so ``.plot()``,
+        ``.sel(x=, y=, method="nearest")`` and ``.rio.to_raster()`` work; the model is the JSON attr "model"."""
+        attrs = {"units": "1/m^2", "model": json.dumps(self.model)}
+        return self.grid.to_xarray(np.asarray(self.density), "density", attrs)
+
     def density_at(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Density per m^2 at map points (metres, grid CRS); zero off the grid."""
         r, c, inside = self.grid.cell_index(x, y)

@@ -117,8 +117,8 @@ def test_garbled_xyz_lines(tmp_path):
 def test_missing_and_unsupported(tmp_path):
     with pytest.raises(LidarError, match="nothere.ply.*not found"):
         read_point_cloud(tmp_path / "nothere.ply")
-    with pytest.raises(LidarError, match="cloud.las.*unsupported"):
-        read_point_cloud(tmp_path / "cloud.las")
+    with pytest.raises(LidarError, match="cloud.e57.*unsupported"):
+        read_point_cloud(tmp_path / "cloud.e57")
 
 
 def test_cloud_off_grid(tmp_path):
