@@ -23,6 +23,7 @@ from tracker.integrate import scalespace
 from tracker.integrate.reference import covered_mass, reference_integrate
 from tracker.integrate.terraces import (
     MASS,
+    MAX_STRIPS,
     N_STRIPS,
     N_TERRACES,
     SHEAR,
@@ -30,12 +31,16 @@ from tracker.integrate.terraces import (
     near_grid,
     pixel_gaussians,
 )
-from tracker.types.reports import check_gaussians
+from tracker.integrate.tiny import TINY, is_tiny, tiny_integrals
+from tracker.types.reports import MAX_CONDITION, check_gaussians
 
 __all__ = [
+    "MAX_CONDITION",
+    "MAX_STRIPS",
     "METHODS",
     "NEAR_RHO",
     "NEAR_SPREAD",
+    "TINY",
     "Integrator",
     "covered_mass",
     "integrate",
@@ -136,13 +141,36 @@ def _integrate(prior, means, covs, squared, method, n_terraces, n_strips, mass, 
         raise ValueError(f"integrate: method must be one of {METHODS}, got {method!r}")
     uc, vc, cuu, cuv, cvv = pixel_gaussians(prior, means, covs)
     result = np.empty(means.shape[0])
-    rest = np.arange(means.shape[0])
+    # Gaussians under TINY cells (both methods): the closed form, the cells' values weighted by their masses.
+    tiny = is_tiny(cuu, cuv, cvv)
+    rest = np.flatnonzero(~tiny)
+    if rest.size < means.shape[0]:
+        field = np.asarray(prior.density, dtype=np.float64)
+        idx = np.flatnonzero(tiny)
+        result[idx] = tiny_integrals(field * field if squared else field, *(a[idx] for a in (uc, vc, cuu, cuv, cvv)))
+        uc, vc, cuu, cuv, cvv = (a[rest] for a in (uc, vc, cuu, cuv, cvv))
+    _integrate_rest(prior, uc, vc, cuu, cuv, cvv, squared, method, n_terraces, n_strips, mass, shear, scheme, result, rest)
+    bad = np.flatnonzero(~np.isfinite(result))
+    if bad.size:
+        # Finite, checked Gaussians give finite integrals of a finite prior: the prior's tables are not.
+        table = "sat2 (r²)" if squared else "sat (r)"
+        raise ValueError(
+            f"integrate: non-finite integrals at indices {bad[:10].tolist()}: the prior's density or "
+            f"summed-area table {table} holds NaN or inf values; rebuild the prior"
+        )
+    return result
+
+
+def _integrate_rest(prior, uc, vc, cuu, cuv, cvv, squared, method, n_terraces, n_strips, mass, shear, scheme, out, where):
+    """The pyramid and the terraces for the Gaussians (pixel units) that are not tiny; results to ``out[where]``."""
+    result = np.empty(uc.shape[0])
+    rest = np.arange(uc.shape[0])
     if method == "scalespace" and prior.grid.height * prior.grid.width > scalespace.MAX_CELLS:
         warnings.warn(
             f"integrate: the prior's {prior.grid.height} x {prior.grid.width} grid is above scalespace.MAX_CELLS "
             f"({scalespace.MAX_CELLS:,} cells; its pyramid would take ~{scalespace.pyramid_bytes(prior.grid.shape) / 2**30:.1f} GiB): "
             "using the terraces",
-            stacklevel=3,
+            stacklevel=4,
         )
         method = "terraces"
     if method == "scalespace" and rest.size:
@@ -161,4 +189,4 @@ def _integrate(prior, means, covs, squared, method, n_terraces, n_strips, mass, 
         result[rest] = integrate_terraces(
             prior, *(a[rest] for a in (uc, vc, cuu, cuv, cvv)), squared, n_terraces, n_strips, mass, shear, scheme
         )
-    return result
+    out[where] = result

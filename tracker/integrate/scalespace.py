@@ -436,9 +436,10 @@ def _window(values, tab, u, v, s, wu):
     """f_s(u, v) exactly: Σ_cells value · ΔΦ_u · ΔΦ_v over the cells within 5 s of the point."""
     h, w = values.shape
     reach = 5.0 * s
-    i0 = max(int(np.floor(u - reach)), 0)
+    # ceil - 1: a point on a cell edge also weighs the cell that ends there (reach may round to 0).
+    i0 = max(int(np.ceil(u - reach)) - 1, 0)
     i1 = min(int(np.floor(u + reach)), w - 1)
-    j0 = max(int(np.floor(v - reach)), 0)
+    j0 = max(int(np.ceil(v - reach)) - 1, 0)
     j1 = min(int(np.floor(v + reach)), h - 1)
     if i1 < i0 or j1 < j0:
         return 0.0
@@ -523,7 +524,7 @@ def _kernel(values, tab, coef, scale, step, u0, v0, nu, nv, offset, uc, vc, cuu,
         ws1 = np.empty(MAX_POINTS)
         xs2 = np.empty(MAX_POINTS)
         ws2 = np.empty(MAX_POINTS)
-        wu = np.empty(int(5.0 * 2 * scale[0]) + 8)
+        wu = np.empty(int(5.0 * 2 * scale[0]) + 9)
         lo = c * chunk
         hi = min(lo + chunk, order.shape[0])
         g = np.empty((hi - lo, 5))

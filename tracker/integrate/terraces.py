@@ -52,6 +52,9 @@ SHEAR = 16.0
 """Default strips per unit of shear κ (see :func:`n_strips_for`)."""
 MASS = 0.9999
 """Default Gaussian mass covered by the terraces (beyond the grid's nearest point)."""
+MAX_STRIPS = 4096
+"""Most strips per ellipse: the cap on ⌈shear·κ⌉ that bounds the time and memory of a thin tilted
+Gaussian (κ above 256, e.g. 512:1 at 45°); past it the accuracy is the one measured in docs/terrace.md."""
 
 _FAR = 1400.0  # ρ_lo² beyond which e^{-ρ²/2} underflows: the integral is 0 in float64
 
@@ -93,10 +96,11 @@ def n_strips_for(cuu: np.ndarray, cuv: np.ndarray, cvv: np.ndarray, n_strips: in
     off by the parallelogram's vertical drift across the strip, which relative to the strip's
     height is about κ/S with κ = |c|/√(1-c²) (c the u-v correlation). S = ⌈shear·κ⌉ keeps that
     near 1/shear. κ depends on orientation and eccentricity only (at most (e - 1/e)/2 for an
-    e:1 ellipse), never on the spread.
+    e:1 ellipse), never on the spread. Capped at :data:`MAX_STRIPS` (or ``n_strips`` if larger).
     """
-    kappa = np.abs(cuv) / np.sqrt(cuu * cvv - cuv * cuv)
-    return np.maximum(n_strips, np.ceil(shear * kappa)).astype(np.int64)
+    c = np.clip(cuv / np.sqrt(cuu) / np.sqrt(cvv), -1.0, 1.0)  # no product of variances: no under/overflow
+    kappa = np.abs(c) / np.sqrt((1.0 - np.abs(c)) * (1.0 + np.abs(c)))
+    return np.maximum(n_strips, np.minimum(np.ceil(shear * kappa), MAX_STRIPS)).astype(np.int64)
 
 
 def strip_tables(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -300,8 +304,21 @@ def _ellipse_sum(sat, uc, vc, su, slope, half, extent, other, transposed, rho, n
 
 
 @nb.njit(cache=True, inline="always")
-def _maha2(du, dv, cuu, cuv, cvv, det):
-    return (cvv * du * du - 2.0 * cuv * du * dv + cuu * dv * dv) / det
+def _maha2(du, dv, su, sv, c):
+    """Squared Mahalanobis length of (du, dv) for σ_u = ``su``, σ_v = ``sv``, correlation ``c``:
+    standardised first, so neither 1e-300 nor 1e300 cells² under- or overflows."""
+    x = du / su
+    y = dv / sv
+    return (x * x - 2.0 * c * x * y + y * y) / ((1.0 - c) * (1.0 + c))
+
+
+@nb.njit(cache=True, inline="always")
+def root_det(cuu, cuv, cvv):
+    """√det of [[cuu, cuv], [cuv, cvv]] (cells²) as σ_u σ_v √(1 - c²), and (σ_u, σ_v, c): no variance is squared."""
+    su = np.sqrt(cuu)
+    sv = np.sqrt(cvv)
+    c = min(max(cuv / su / sv, -1.0), 1.0)
+    return su * sv * np.sqrt((1.0 - c) * (1.0 + c)), su, sv, c
 
 
 @nb.njit(cache=True)
@@ -312,22 +329,22 @@ def grid_radii(uc, vc, cuu, cuv, cvv, w, h):
     corner, and ``rows`` True when the nearer of the edges v = 0, v = h (as segments) is nearer
     than the nearer of u = 0, u = w: strips then run across rows so those edges are cut exactly.
     """
-    det = cuu * cvv - cuv * cuv
+    su, sv, c = root_det(cuu, cuv, cvv)[1:]
     hi = 0.0
     for cu in (0.0, w):
         for cv in (0.0, h):
-            hi = max(hi, _maha2(cu - uc, cv - vc, cuu, cuv, cvv, det))
+            hi = max(hi, _maha2(cu - uc, cv - vc, su, sv, c))
     # On an edge u = U the quadratic is least at dv = (cuv / cuu) du, clamped to the edge.
     d_cols = np.inf
     for cu in (0.0, w):
         du = cu - uc
         dv = min(max(vc + cuv / cuu * du, 0.0), h) - vc
-        d_cols = min(d_cols, _maha2(du, dv, cuu, cuv, cvv, det))
+        d_cols = min(d_cols, _maha2(du, dv, su, sv, c))
     d_rows = np.inf
     for cv in (0.0, h):
         dv = cv - vc
         du = min(max(uc + cuv / cvv * dv, 0.0), w) - uc
-        d_rows = min(d_rows, _maha2(du, dv, cuu, cuv, cvv, det))
+        d_rows = min(d_rows, _maha2(du, dv, su, sv, c))
     inside = 0.0 <= uc <= w and 0.0 <= vc <= h
     return (0.0 if inside else min(d_cols, d_rows)), hi, d_rows < d_cols
 
@@ -339,7 +356,7 @@ def near_grid(uc, vc, cuu, cuv, cvv, w, h, max_rho, max_spread):
     out = np.empty(uc.shape[0], dtype=np.bool_)
     for n in nb.prange(uc.shape[0]):
         lo2 = grid_radii(uc[n], vc[n], cuu[n], cuv[n], cvv[n], w, h)[0]
-        spread = 2.0 * np.pi * np.sqrt(cuu[n] * cvv[n] - cuv[n] * cuv[n])
+        spread = 2.0 * np.pi * root_det(cuu[n], cuv[n], cvv[n])[0]
         out[n] = lo2 <= max_rho * max_rho and spread <= max_spread * w * h
     return out
 
@@ -365,9 +382,9 @@ def _terrace_kernel(sat, uc, vc, cuu, cuv, cvv, strips, offset, n_terraces, rho_
         lo = np.sqrt(lo2)
         whole = hi2 <= lo2 + rho_mass * rho_mass  # the terraces reach the far corner
         end = np.sqrt(hi2) if whole else np.sqrt(lo2 + rho_mass * rho_mass)
-        sd = np.sqrt(cuu[n] * cvv[n] - cuv[n] * cuv[n])
+        sd = root_det(cuu[n], cuv[n], cvv[n])[0]
         a, b, saa, extent, other = _orient(transposed, uc[n], vc[n], cuu[n], cvv[n], w, h)
-        slope = cuv[n] / (saa * saa)
+        slope = cuv[n] / saa / saa  # not / saa²: that overflows at 1e300 cells²
         half = sd / saa  # half-height of the unit ellipse at its centre column
         step = (end - lo) / n_terraces
         acc = 0.0
@@ -398,13 +415,13 @@ def _paper_kernel(sat, uc, vc, cuu, cuv, cvv, strips, offset, rho, coef, t, tbar
     h = float(sat.shape[0] - 1)
     w = float(sat.shape[1] - 1)
     for n in nb.prange(uc.shape[0]):
-        sd = np.sqrt(cuu[n] * cvv[n] - cuv[n] * cuv[n])
+        sd = root_det(cuu[n], cuv[n], cvv[n])[0]
         transposed = grid_radii(uc[n], vc[n], cuu[n], cuv[n], cvv[n], w, h)[2]
         a, b, saa, extent, other = _orient(transposed, uc[n], vc[n], cuu[n], cvv[n], w, h)
         acc = 0.0
         for k in range(rho.shape[0]):
             acc += coef[k] * _ellipse_sum(
-                sat, a, b, saa, cuv[n] / (saa * saa), sd / saa, extent, other, transposed, rho[k], strips[n], offset[n], t, tbar, eta
+                sat, a, b, saa, cuv[n] / saa / saa, sd / saa, extent, other, transposed, rho[k], strips[n], offset[n], t, tbar, eta
             )
         out[n] = acc / sd
 

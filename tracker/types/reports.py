@@ -10,14 +10,21 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
+MAX_CONDITION = 1e12
+"""Largest condition number (larger / smaller eigenvalue) :func:`check_gaussians` accepts for a 2-D
+covariance. Past it the float64 entries no longer fix the smaller eigenvalue: rounding the entries by
+one unit in the last place moves it by ~2e-16 × the larger one, i.e. by ~2e-4 of itself at 1e12 and by
+all of it near 1e16 (docs/terrace.md, "Limits")."""
+
 
 def check_gaussians(means: np.ndarray, covs: np.ndarray, what: str, *, means_name: str = "means",
                     covs_name: str = "covariances") -> tuple[np.ndarray, np.ndarray]:
     """Validate (N, d) means and (N, d, d) symmetric positive-definite covariances: the tracker's one
     positive-definite check (reports, integrators, gating).
 
-    Returns both as float64 arrays. Raises ``ValueError`` naming ``what``, the offending argument
-    (``means_name`` or ``covs_name``) and the offending indices.
+    2-D covariances must also have a condition number of at most :data:`MAX_CONDITION` (any scale,
+    1e-300 to 1e300 m², is fine). Returns both as float64 arrays. Raises ``ValueError`` naming ``what``,
+    the offending argument (``means_name`` or ``covs_name``) and the offending indices.
     """
     means = np.asarray(means, dtype=np.float64)
     covs = np.asarray(covs, dtype=np.float64)
@@ -29,7 +36,9 @@ def check_gaussians(means: np.ndarray, covs: np.ndarray, what: str, *, means_nam
     else:
         flags = _flags(np.ascontiguousarray(means), np.ascontiguousarray(covs))
     problems = (f"non-finite {means_name}", f"non-finite {covs_name}", f"{covs_name} not symmetric",
-                f"{covs_name} not positive definite")
+                f"{covs_name} not positive definite",
+                f"{covs_name} too ill-conditioned (condition number above {MAX_CONDITION:.0e}: numerically "
+                "singular, e.g. a correlation of ±1 to 12 digits)")
     for bit, words in enumerate(problems):
         bad = np.flatnonzero(flags == bit + 1)
         if bad.size:
@@ -92,18 +101,32 @@ def _flags(means: np.ndarray, covs: np.ndarray) -> np.ndarray:
 
 @nb.njit(cache=True)
 def _flags_2d(means: np.ndarray, covs: np.ndarray) -> np.ndarray:
-    """:func:`_flags` for 2-D Gaussians in one pass (the closed-form smaller eigenvalue)."""
+    """:func:`_flags` for 2-D Gaussians in one pass (closed-form eigenvalues), and 5 for a condition
+    number above :data:`MAX_CONDITION`.
+
+    The entries are divided by the largest first, so neither 1e-300 nor 1e300 m² under- or overflows;
+    the smaller eigenvalue is det / larger, which keeps its relative accuracy (m - hypot would cancel).
+    """
     flags = np.zeros(means.shape[0], dtype=np.int8)
     for n in range(means.shape[0]):
         a, b, c, d = covs[n, 0, 0], covs[n, 0, 1], covs[n, 1, 0], covs[n, 1, 1]
+        scale = max(max(abs(a), abs(b)), max(abs(c), abs(d)))
         if not (np.isfinite(means[n, 0]) and np.isfinite(means[n, 1])):
             flags[n] = 1
         elif not (np.isfinite(a) and np.isfinite(b) and np.isfinite(c) and np.isfinite(d)):
             flags[n] = 2
-        elif abs(b - c) > 1e-9 * max(max(abs(a), abs(b)), max(max(abs(c), abs(d)), 1e-300)):
+        elif abs(b - c) > 1e-9 * max(scale, 1e-300):
             flags[n] = 3
-        elif not (0.5 * (a + d) - np.hypot(0.5 * (a - d), 0.5 * (b + c)) > 0.0):
+        elif not (scale > 0.0):
             flags[n] = 4
+        else:
+            a, d, e = a / scale, d / scale, 0.5 * (b + c) / scale
+            big = 0.5 * (a + d) + np.hypot(0.5 * (a - d), e)
+            small = (a * d - e * e) / big if big > 0.0 else -1.0
+            if not (small > 0.0 and a > 0.0):
+                flags[n] = 4
+            elif big > MAX_CONDITION * small:
+                flags[n] = 5
     return flags
 
 
