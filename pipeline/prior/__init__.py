@@ -23,7 +23,7 @@ _EXPORTS = {
     "pseudocolor_qml": "style",
     "qml_document": "style",
     "style_path": "style",
-    "coarsest_overview": "write",
+    "STYLE_SAMPLE_EDGE": "write",
     "cog_writer": "write",
     "geotiff_profile": "write",
     "prior_tags": "write",

@@ -28,6 +28,8 @@ BLOCK = 256
 """GeoTIFF tile edge in cells."""
 UNITS = "probability density per square metre"
 """The ``UNITS`` tag of a prior GeoTIFF."""
+STYLE_SAMPLE_EDGE = 1024
+"""The prior's style is fitted to every k-th row and column, k chosen so at most this many of each."""
 
 
 def geotiff_profile(grid: Grid, dtype: str, compress: str | None = "deflate", **options) -> dict:
@@ -60,15 +62,6 @@ def cog_writer(path: str | Path, grid: Grid, dtype: str, resampling: str = "AVER
         )
 
 
-def coarsest_overview(path: str | Path) -> np.ndarray:
-    """Band 1 of a GeoTIFF at its smallest overview (full resolution when it has none): a cheap
-    summary of a raster larger than memory."""
-    with rasterio.open(path) as src:
-        levels = len(src.overviews(1))
-    with rasterio.open(path, overview_level=levels - 1) if levels else rasterio.open(path) as src:
-        return src.read(1)
-
-
 def prior_tags(model: dict) -> dict[str, str]:
     """Tags of a prior GeoTIFF: the model description as JSON (``MODEL``) and the density's ``UNITS``."""
     return {"MODEL": json.dumps(model), "UNITS": UNITS}
@@ -90,9 +83,11 @@ def write_prior(
     bands from the top, density (n, W) per m^2 (written as float32), tables (n, W+1) float64 — the rows
     below the zero top row of the padded (H+1, W+1) summed-area tables. The strips' buffers may be reused
     between strips. The GeoTIFF is a COG with overviews; its QGIS style (:func:`pipeline.prior.style.prior_qml`
-    of the coarsest overview) goes beside it. Returns the GeoTIFF path."""
+    of a decimated sample of the density) goes beside it. Returns the GeoTIFF path."""
     path = Path(path)
     h, w = grid.shape
+    step = max(1, -(-max(h, w) // STYLE_SAMPLE_EDGE))
+    sample = []
     # Tables and style first, GeoTIFF last: a complete prior.tif implies a complete set.
     with atomic_paths(*sat_paths(path), style_path(path), path) as (t_sat, t_sat2, t_qml, t_tif):
         header = np.lib.format.open_memmap(t_sat, mode="w+", dtype=np.float64, shape=(h + 1, w + 1)).offset
@@ -108,11 +103,12 @@ def write_prior(
                 if sat.shape != (n, w + 1) or sat2.shape != (n, w + 1):
                     raise ValueError(f"table strips must be ({n}, {w + 1}), got {sat.shape}, {sat2.shape}")
                 dst.write(density.astype(np.float32, copy=False), 1, window=Window(0, r0, w, n))
+                sample.append(np.array(density[(-r0) % step :: step, ::step], dtype=np.float32))  # a copy: buffers are reused
                 f_sat.write(memoryview(np.ascontiguousarray(sat, dtype=np.float64)).cast("B"))
                 f_sat2.write(memoryview(np.ascontiguousarray(sat2, dtype=np.float64)).cast("B"))
                 r0 += n
             if r0 != h:
                 raise ValueError(f"strips cover {r0} rows of a {h}-row grid")
             dst.update_tags(**prior_tags(model))
-        t_qml.write_text(prior_qml(coarsest_overview(t_tif)), encoding="utf-8")
+        t_qml.write_text(prior_qml(np.concatenate(sample)), encoding="utf-8")
     return path
