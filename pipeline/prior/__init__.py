@@ -17,6 +17,7 @@ _EXPORTS = {
     "sat_integral": "terrain",
     "sat_rect": "terrain",
     "PALETTE": "style",
+    "QGIS_VERSION": "style",
     "VIRIDIS": "style",
     "paletted_qml": "style",
     "prior_qml": "style",

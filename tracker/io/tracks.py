@@ -28,7 +28,7 @@ import shapely
 from pyogrio import raw
 
 from common.atomic import atomic_paths
-from pipeline.prior.style import QGIS_VERSION, qml_document
+from pipeline.prior import QGIS_VERSION, qml_document
 from tracker.io.columns import COV_COLUMNS, cov_columns, covs_from_columns
 from tracker.types.estimate import Estimate
 
