@@ -20,6 +20,11 @@ $(STAMP): pyproject.toml
 	  echo "installing Debian's chromium (the browser test of the HTML maps)"; \
 	  SUDO=$$([ "$$(id -u)" = 0 ] || echo sudo); \
 	  $$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq chromium; }
+	@# gdal-bin's gdalinfo checks the COG layout of prior.tif in the tests (an independent GDAL build).
+	@dpkg -s gdal-bin >/dev/null 2>&1 || { \
+	  echo "installing Debian's gdal-bin (gdalinfo, for the COG tests)"; \
+	  SUDO=$$([ "$$(id -u)" = 0 ] || echo sudo); \
+	  $$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq gdal-bin; }
 	test -d $(VENV) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -e ".[dev,lidar]"

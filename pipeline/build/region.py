@@ -9,7 +9,6 @@ import json
 from pathlib import Path
 
 import numpy as np
-import rasterio
 from tqdm import tqdm
 
 from common.atomic import atomic_paths
@@ -22,8 +21,9 @@ from pipeline.gis.grid import NODATA_CODE
 from pipeline.gis.layers import LayerError, VectorLayer, read_dem, read_raster, read_vector
 from pipeline.gis.lidar import LidarError, LidarSurface
 from pipeline.prior.likelihood import LikelihoodModel
+from pipeline.prior.style import paletted_qml, pseudocolor_qml, style_path
 from pipeline.prior.terrain import PriorError, TerrainPrior
-from pipeline.prior.write import geotiff_profile
+from pipeline.prior.write import cog_writer
 
 
 class _Layers:
@@ -182,27 +182,38 @@ def build_region_prior(
     return build_prior(stack, model, region_provenance(config) if provenance is None else provenance)
 
 
-def write_features(stack: FeatureStack, out_dir: str | Path) -> list[Path]:
-    """One GeoTIFF per feature in ``out_dir`` (``<name>.tif``), all renamed into place together.
+def _feature_qml(f: Feature) -> str:
+    """QGIS style of a feature: a palette of its categories (codes present or labelled), else a ramp over its finite range."""
+    if f.kind == "categorical":
+        return paletted_qml({int(c): f.label(c) for c in sorted(set(f.labels) | set(f.codes().tolist()))})
+    finite = f.values[np.isfinite(f.values)]
+    lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
+    return pseudocolor_qml(lo, hi, f.units)
 
-    Categorical: int16 codes (int32 when a code needs it), nodata ``NODATA_CODE``, the labels as a JSON tag ``LABELS``;
-    continuous: float32 in the tag ``UNITS``, nodata NaN.
+
+def write_features(stack: FeatureStack, out_dir: str | Path) -> list[Path]:
+    """One Cloud-Optimized GeoTIFF per feature in ``out_dir`` (``<name>.tif``) with its QGIS style
+    (``<name>.qml``), all renamed into place together; returns the GeoTIFF paths.
+
+    Categorical: int16 codes (int32 when a code needs it), nodata ``NODATA_CODE``, the labels as a JSON tag ``LABELS``,
+    a paletted style with the labels; continuous: float32 in the tag ``UNITS``, nodata NaN, a pseudocolour style.
     """
     out_dir = Path(out_dir)
     finals = [out_dir / f"{f.name}.tif" for f in stack]
-    with atomic_paths(*finals) as temps:
-        for f, tmp in zip(stack, temps, strict=True):
+    with atomic_paths(*finals, *map(style_path, finals)) as temps:
+        for f, tmp, tmp_qml in zip(stack, temps[: len(finals)], temps[len(finals) :], strict=True):
             if f.kind == "categorical":
                 small = f.values.size == 0 or np.iinfo(np.int16).max >= f.values.max()
                 dtype = "int16" if small else "int32"
-                profile = geotiff_profile(stack.grid, dtype, nodata=NODATA_CODE)
+                writer = cog_writer(tmp, stack.grid, dtype, "NEAREST", nodata=NODATA_CODE)
                 tags = {"LABELS": json.dumps({str(k): v for k, v in f.labels.items()})}
                 data = f.values.astype(dtype)
             else:
-                profile = geotiff_profile(stack.grid, "float32", nodata=float("nan"))
+                writer = cog_writer(tmp, stack.grid, "float32", nodata=float("nan"))
                 tags = {"UNITS": f.units}
                 data = f.values.astype(np.float32)
-            with rasterio.open(tmp, "w", **profile) as dst:
+            with writer as dst:
                 dst.write(data, 1)
                 dst.update_tags(FEATURE=f.name, KIND=f.kind, **tags)
+            tmp_qml.write_text(_feature_qml(f), encoding="utf-8")
     return finals

@@ -1,4 +1,4 @@
-"""The prior the tracker reads: likelihood tables, the normalised density with its summed-area tables, its files."""
+"""The prior the tracker reads: likelihood tables, the normalised density with its summed-area tables, its files and QGIS styles."""
 
 from common.exports import lazy_exports
 
@@ -16,6 +16,16 @@ _EXPORTS = {
     "density_table_rows": "terrain",
     "sat_integral": "terrain",
     "sat_rect": "terrain",
+    "PALETTE": "style",
+    "QGIS_VERSION": "style",
+    "VIRIDIS": "style",
+    "paletted_qml": "style",
+    "prior_qml": "style",
+    "pseudocolor_qml": "style",
+    "qml_document": "style",
+    "style_path": "style",
+    "STYLE_SAMPLE_EDGE": "write",
+    "cog_writer": "write",
     "geotiff_profile": "write",
     "prior_tags": "write",
     "sat_paths": "write",

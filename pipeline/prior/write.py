@@ -1,5 +1,6 @@
-"""The one writer of GeoTIFFs on a grid and of the prior set: ``prior.tif`` (float32 density per m^2,
-the model as tags) with ``prior.sat.npy`` / ``prior.sat2.npy`` beside it, committed together.
+"""The one writer of GeoTIFFs on a grid and of the prior set: ``prior.tif`` (a Cloud-Optimized GeoTIFF,
+float32 density per m^2, the model as tags) with ``prior.sat.npy`` / ``prior.sat2.npy`` and its QGIS
+style ``prior.qml`` beside it, committed together.
 
 The density and tables arrive in row strips, so a prior larger than memory is written as it is
 computed (the tiled build) and an in-memory one is written the same way.
@@ -10,21 +11,25 @@ from __future__ import annotations
 import contextlib
 import json
 import tempfile
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
 import rasterio
 import rasterio.shutil
+from rasterio.io import DatasetWriter
 from rasterio.windows import Window
 
 from common.atomic import atomic_paths
 from pipeline.gis.grid import Grid
+from pipeline.prior.style import prior_qml, style_path
 
 BLOCK = 256
 """GeoTIFF tile edge in cells."""
 UNITS = "probability density per square metre"
 """The ``UNITS`` tag of a prior GeoTIFF."""
+STYLE_SAMPLE_EDGE = 1024
+"""The prior's style is fitted to every k-th row and column, k chosen so at most this many of each."""
 
 
 def geotiff_profile(grid: Grid, dtype: str, compress: str | None = "deflate", **options) -> dict:
@@ -37,6 +42,24 @@ def geotiff_profile(grid: Grid, dtype: str, compress: str | None = "deflate", **
     if compress is not None:
         profile["compress"] = compress
     return profile | options
+
+
+@contextlib.contextmanager
+def cog_writer(path: str | Path, grid: Grid, dtype: str, resampling: str = "AVERAGE", **options) -> Iterator[DatasetWriter]:
+    """Yield a one-band GeoTIFF on ``grid`` open for writing (bands, tags); when the block succeeds,
+    copy it to ``path`` as a Cloud-Optimized GeoTIFF: deflate, BLOCK x BLOCK tiles, overviews made
+    with GDAL's ``resampling`` (AVERAGE for densities, NEAREST for category codes). ``options``: extra
+    profile keys (e.g. ``nodata``). The uncompressed source lives in a scratch folder beside ``path``."""
+    path = Path(path)
+    with tempfile.TemporaryDirectory(prefix=f".{path.stem}.", dir=path.parent) as scratch:
+        plain = Path(scratch) / "plain.tif"
+        # the COG copy compresses; its uncompressed source is cheaper to write
+        with rasterio.open(plain, "w", **geotiff_profile(grid, dtype, None, BIGTIFF="IF_SAFER", **options)) as dst:
+            yield dst
+        rasterio.shutil.copy(
+            plain, path, driver="COG", COMPRESS="DEFLATE", BLOCKSIZE=BLOCK,
+            OVERVIEW_RESAMPLING=resampling, NUM_THREADS="ALL_CPUS", BIGTIFF="IF_SAFER",
+        )
 
 
 def prior_tags(model: dict) -> dict[str, str]:
@@ -55,25 +78,21 @@ def write_prior(
     grid: Grid,
     model: dict,
     strips: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]],
-    cog: bool = False,
 ) -> Path:
     """Write the prior set of ``path`` atomically from ``strips``: successive (density, sat, sat2) row
     bands from the top, density (n, W) per m^2 (written as float32), tables (n, W+1) float64 — the rows
     below the zero top row of the padded (H+1, W+1) summed-area tables. The strips' buffers may be reused
-    between strips. ``cog``: a Cloud-Optimized GeoTIFF with overviews instead of a deflated tiled one.
-    Returns the GeoTIFF path."""
+    between strips. The GeoTIFF is a COG with overviews; its QGIS style (:func:`pipeline.prior.style.prior_qml`
+    of a decimated sample of the density) goes beside it. Returns the GeoTIFF path."""
     path = Path(path)
     h, w = grid.shape
-    # Tables first, GeoTIFF last: a complete prior.tif implies complete tables.
-    with atomic_paths(*sat_paths(path), path) as (t_sat, t_sat2, t_tif), (
-        tempfile.TemporaryDirectory(prefix=f".{path.stem}.", dir=path.parent) if cog else contextlib.nullcontext()
-    ) as scratch:
-        plain = Path(scratch) / "density.tif" if cog else t_tif
-        # the COG copy compresses; its uncompressed source is cheaper to write
-        profile = geotiff_profile(grid, "float32", None, BIGTIFF="IF_SAFER") if cog else geotiff_profile(grid, "float32")
+    step = max(1, -(-max(h, w) // STYLE_SAMPLE_EDGE))
+    sample = []
+    # Tables and style first, GeoTIFF last: a complete prior.tif implies a complete set.
+    with atomic_paths(*sat_paths(path), style_path(path), path) as (t_sat, t_sat2, t_qml, t_tif):
         header = np.lib.format.open_memmap(t_sat, mode="w+", dtype=np.float64, shape=(h + 1, w + 1)).offset
         np.lib.format.open_memmap(t_sat2, mode="w+", dtype=np.float64, shape=(h + 1, w + 1))
-        with (rasterio.open(plain, "w", **profile) as dst, open(t_sat, "r+b") as f_sat, open(t_sat2, "r+b") as f_sat2):
+        with (cog_writer(t_tif, grid, "float32") as dst, open(t_sat, "r+b") as f_sat, open(t_sat2, "r+b") as f_sat2):
             zero = memoryview(np.zeros(w + 1))
             for f_out in (f_sat, f_sat2):
                 f_out.seek(header)
@@ -84,15 +103,12 @@ def write_prior(
                 if sat.shape != (n, w + 1) or sat2.shape != (n, w + 1):
                     raise ValueError(f"table strips must be ({n}, {w + 1}), got {sat.shape}, {sat2.shape}")
                 dst.write(density.astype(np.float32, copy=False), 1, window=Window(0, r0, w, n))
+                sample.append(np.array(density[(-r0) % step :: step, ::step], dtype=np.float32))  # a copy: buffers are reused
                 f_sat.write(memoryview(np.ascontiguousarray(sat, dtype=np.float64)).cast("B"))
                 f_sat2.write(memoryview(np.ascontiguousarray(sat2, dtype=np.float64)).cast("B"))
                 r0 += n
             if r0 != h:
                 raise ValueError(f"strips cover {r0} rows of a {h}-row grid")
             dst.update_tags(**prior_tags(model))
-        if cog:
-            rasterio.shutil.copy(
-                plain, t_tif, driver="COG", COMPRESS="DEFLATE", BLOCKSIZE=BLOCK,
-                OVERVIEW_RESAMPLING="AVERAGE", NUM_THREADS="ALL_CPUS", BIGTIFF="IF_SAFER",
-            )
+        t_qml.write_text(prior_qml(np.concatenate(sample)), encoding="utf-8")
     return path

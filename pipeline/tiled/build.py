@@ -165,7 +165,7 @@ def build_prior_tiled(
                 )
             # GDAL's block cache defaults to 5% of RAM; pass 2 streams, so a small cache keeps the client small.
             with rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_BYTES):
-                write_prior(out, config.grid, description, _prior_strips(r_store, total_r, config.grid, progress), cog=True)
+                write_prior(out, config.grid, description, _prior_strips(r_store, total_r, config.grid, progress))
     t2 = time.perf_counter()
     per_worker: dict[str, dict] = {}
     for res in results:

@@ -33,7 +33,7 @@ def test_build_writes_a_normalised_prior(built: Path) -> None:
     assert prior.sat[-1, -1] == pytest.approx(1.0, rel=1e-12)
     assert prior.model["provenance"]["config"] == str(REGION_TOML)
     assert set(prior.model["likelihood"]) == {"water", "obstacles", "slope_class", "road_distance", "surface", "vegetation"}
-    assert sorted(p.name for p in built.iterdir()) == ["prior.sat.npy", "prior.sat2.npy", "prior.tif"]
+    assert sorted(p.name for p in built.iterdir()) == ["prior.qml", "prior.sat.npy", "prior.sat2.npy", "prior.tif"]
 
 
 def test_show_draws_prior_and_features(built: Path, capsys) -> None:
@@ -50,7 +50,7 @@ def test_features_writes_one_geotiff_per_feature(tmp_path: Path) -> None:
     out = tmp_path / "features"
     assert main(["-q", "features", str(REGION_TOML), "--out", str(out)]) == 0
     names = {"water", "obstacles", "road_distance", "slope", "slope_class", "surface", "vegetation"}
-    assert {p.name for p in out.iterdir()} == {f"{n}.tif" for n in names}
+    assert {p.name for p in out.iterdir()} == {f"{n}{ext}" for n in names for ext in (".tif", ".qml")}
     with rasterio.open(out / "road_distance.tif") as src:
         d = src.read(1)
         assert src.tags()["UNITS"] == "m" and src.crs.to_epsg() == 32734

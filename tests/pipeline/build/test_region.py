@@ -11,7 +11,6 @@ import rasterio
 import shapely
 from affine import Affine
 
-from pipeline.build import region as build
 from pipeline.build.region import build_features, build_prior, write_features
 from pipeline.config.region import load_config
 from pipeline.features.stack import Feature, FeatureStack
@@ -275,7 +274,7 @@ def test_failed_feature_write_leaves_nothing(tmp_path: Path, monkeypatch) -> Non
             raise OSError("disk full")
         return real_open(path, mode, **kw)
 
-    monkeypatch.setattr(build.rasterio, "open", failing_open)
+    monkeypatch.setattr(rasterio, "open", failing_open)
     out = tmp_path / "out"
     with pytest.raises(OSError, match="disk full"):
         write_features(tiny_stack(), out)

@@ -143,7 +143,7 @@ def test_write_read_round_trip(tmp_path):
     r = np.random.default_rng(1).random((30, 20)) ** 3
     prior = TerrainPrior.from_array(r, grid, {"features": ["slope", "road_distance"], "seed": 1})
     path = prior.write(tmp_path / "out" / "prior.tif")
-    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["prior.sat.npy", "prior.sat2.npy", "prior.tif"]
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["prior.qml", "prior.sat.npy", "prior.sat2.npy", "prior.tif"]
     back = TerrainPrior.read(path)
     assert back.grid == grid
     assert back.model == prior.model

@@ -1,4 +1,4 @@
-"""The one prior writer: tables byte-identical to np.save, strips of any height, COG or plain GeoTIFF."""
+"""The one prior writer: tables byte-identical to np.save, strips of any height, a COG with its style beside it."""
 
 import json
 
@@ -35,13 +35,13 @@ def test_cog_from_uneven_strips_reads_back_equal(tmp_path, rows):
     prior = _prior()
     strips = ((prior.density[r : r + rows], prior.sat[r + 1 : r + 1 + rows], prior.sat2[r + 1 : r + 1 + rows])
               for r in range(0, prior.grid.height, rows))
-    path = write_prior(tmp_path / "prior.tif", prior.grid, prior.model, strips, cog=True)
+    path = write_prior(tmp_path / "prior.tif", prior.grid, prior.model, strips)
     back = TerrainPrior.read(path)
     np.testing.assert_array_equal(back.density, prior.density.astype(np.float32))
     np.testing.assert_array_equal(back.sat, prior.sat)
     np.testing.assert_array_equal(back.sat2, prior.sat2)
     assert back.model == prior.model
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["prior.sat.npy", "prior.sat2.npy", "prior.tif"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["prior.qml", "prior.sat.npy", "prior.sat2.npy", "prior.tif"]
 
 
 def test_missing_rows_fail_and_write_nothing(tmp_path):

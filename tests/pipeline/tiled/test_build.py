@@ -73,7 +73,7 @@ def test_tiled_build_is_bit_identical_with_a_configured_cap(tmp_path, client):
         assert src.block_shapes[0] == (256, 256)
         assert src.overviews(1)
         assert src.tags(ns="IMAGE_STRUCTURE").get("LAYOUT") == "COG"
-    assert sorted(p.name for p in out.parent.iterdir()) == ["prior.sat.npy", "prior.sat2.npy", "prior.tif"]
+    assert sorted(p.name for p in out.parent.iterdir()) == ["prior.qml", "prior.sat.npy", "prior.sat2.npy", "prior.tif"]
 
 
 def test_derived_cap_matches_uncapped_build_within_road_tail(tmp_path, client):
