@@ -4,6 +4,8 @@ from common.exports import lazy_exports
 
 _EXPORTS = {
     "atomic_paths": "atomic",
+    "remove_stale_temps": "atomic",
+    "scratch_dir": "atomic",
     "get_client": "dask",
     "using_client": "dask",
     "lazy_exports": "exports",
