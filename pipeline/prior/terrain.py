@@ -238,6 +238,8 @@ class TerrainPrior:
         expected = (grid.height + 1, grid.width + 1)
         if sat.shape != expected or sat2.shape != expected:
             raise PriorError(f"summed-area tables must be {expected}, got {sat.shape}, {sat2.shape}")
+        if sat.dtype != np.float64 or sat2.dtype != np.float64:  # float32 sums lose small rectangles' mass
+            raise PriorError(f"summed-area tables must be float64, got {sat.dtype}, {sat2.dtype}")
         self.grid = grid
         self.density = density
         self.sat = sat

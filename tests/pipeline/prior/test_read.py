@@ -143,6 +143,12 @@ def test_bad_density(prior_path: Path, change, match: str) -> None:
     assert f"{prior_path}: density" in str(err.value) and "build /data/region.toml --out" in str(err.value)
 
 
+def test_constructor_refuses_float32_tables() -> None:
+    p = _prior()
+    with pytest.raises(PriorError, match="summed-area tables must be float64, got float32, float64"):
+        TerrainPrior(p.grid, p.density, p.sat.astype(np.float32), p.sat2)
+
+
 def test_density_within_tolerance_is_accepted(prior_path: Path) -> None:
     _rewrite_density(prior_path, lambda d: d * (1 + DENSITY_TOL / 4))
     TerrainPrior.read(prior_path)  # float32 rounding of a real build is far below the tolerance
