@@ -16,6 +16,8 @@ _EXPORTS = {
     "command_outputs": "outputs",
     "input_files": "outputs",
     "remove_stale_stages": "outputs",
+    "remove_stale_temps": "atomic",
+    "scratch_dir": "atomic",
     "get_client": "dask",
     "using_client": "dask",
     "lazy_exports": "exports",

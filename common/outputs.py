@@ -173,7 +173,8 @@ class Staging:
         return None
 
     def commit(self) -> None:
-        """Rename every staged file into place, oldest first (a writer's last file is committed last)."""
+        """Rename every staged file into place, oldest first (a writer's last file is committed last), after
+        removing the files they replace."""
         moves: list[tuple[int, Path, Path]] = []
         for parent, stage in self.stages.items():
             for src in stage.rglob("*"):
@@ -186,7 +187,12 @@ class Staging:
                 if dest.is_dir():
                     raise OutputError(f"{dest}: is a folder; cannot write a file there")
                 moves.append((src.lstat().st_mtime_ns, src, dest))
-        for _, src, dest in sorted(moves, key=lambda m: (m[0], str(m[1]))):
+        moves.sort(key=lambda m: (m[0], str(m[1])))
+        # Old outputs go first, the last-committed first: a kill during the renames then leaves each
+        # output new or absent, never an old file beside new ones (a prior.tif beside newer tables).
+        for _, _, dest in reversed(moves):
+            dest.unlink(missing_ok=True)
+        for _, src, dest in moves:
             dest.parent.mkdir(parents=True, exist_ok=True)
             os.replace(src, dest)
 

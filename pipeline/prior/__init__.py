@@ -11,6 +11,7 @@ _EXPORTS = {
     "RoadDistanceLikelihood": "likelihood",
     "likelihood_from_dict": "likelihood",
     "road_likelihood": "likelihood",
+    "DENSITY_TOL": "terrain",
     "PriorError": "terrain",
     "TerrainPrior": "terrain",
     "density_table_rows": "terrain",
@@ -26,9 +27,13 @@ _EXPORTS = {
     "style_path": "style",
     "STYLE_SAMPLE_EDGE": "write",
     "cog_writer": "write",
+    "BUILD_TAG": "write",
+    "TABLE_TAGS": "write",
+    "build_tags": "write",
     "geotiff_profile": "write",
     "prior_tags": "write",
     "sat_paths": "write",
+    "table_hash": "write",
     "write_prior": "write",
 }
 __all__ = sorted(_EXPORTS)

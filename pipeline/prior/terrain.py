@@ -2,9 +2,10 @@
 
 This is the only thing the tracker knows about terrain. It is read-only once built.
 
-Files: ``prior.tif`` (float32 density per m^2, CRS, transform, the model as tags) and, beside it,
-``prior.sat.npy`` / ``prior.sat2.npy``: the padded (H+1, W+1) float64 summed-area tables of the per-cell
-mass of r (probability) and of r^2 (per m^2). They are memory-mapped on read.
+Files: ``prior.tif`` (float32 density per m^2, CRS, transform, the model and the build binding as tags)
+and, beside it, ``prior.sat.npy`` / ``prior.sat2.npy``: the padded (H+1, W+1) float64 summed-area tables
+of the per-cell mass of r (probability) and of r^2 (per m^2). They are memory-mapped on read, after
+:meth:`TerrainPrior.read` has checked that the three files are one build (:mod:`pipeline.prior.write`).
 """
 
 from __future__ import annotations
@@ -16,12 +17,135 @@ import numba as nb
 import numpy as np
 import rasterio
 
-from pipeline.gis.grid import Grid
-from pipeline.prior.write import BLOCK, sat_paths, write_prior
+from pipeline.gis.grid import Grid, GridError
+from pipeline.prior.write import (
+    BLOCK,
+    BUILD_TAG,
+    TABLE_TAGS,
+    UNITS,
+    sat_paths,
+    table_hash,
+    write_prior,
+)
+
+DENSITY_TOL = 1e-5
+"""How far a read prior's integral of r, and its tables' last row and column totals (relative to the
+table's total), may be from what the density implies: the density is stored as float32 (~6e-8 relative
+rounding per cell), the tables as float64."""
+SCAN_ROWS_BYTES = 1 << 24
+"""Bytes of table rows hashed and checked at a time on read (bounds the memory a check touches)."""
 
 
 class PriorError(ValueError):
     """A prior that cannot be built or read."""
+
+
+def _bad_cells(bad: np.ndarray) -> str:
+    """'N bad cells, first at row r, col c' for a boolean mask with at least one True."""
+    rows, cols = np.nonzero(bad)
+    return f"{bad.sum()} bad cells, first at row {rows[0]}, col {cols[0]}"
+
+
+def _rebuild_hint(path: Path, model: dict) -> str:
+    """How to rebuild the prior at ``path``, naming the region config it records when it does."""
+    provenance = model.get("provenance")
+    config = provenance.get("config") if isinstance(provenance, dict) else None
+    return f"rebuild it with `terrain-prior build {config or 'REGION.toml'} --out {path}`"
+
+
+def _read_geotiff(path: Path) -> tuple[Grid, np.ndarray, dict, list[str], str]:
+    """Grid, float64 density, model, table digests and rebuild hint of a prior GeoTIFF; PriorError unless it carries a
+    prior's tags and a finite, non-negative density that integrates to 1 (within DENSITY_TOL)."""
+    try:
+        with rasterio.open(path) as src:
+            tags = src.tags()
+            profile = (src.count, src.dtypes[0])
+            density = src.read(1).astype(np.float64) if profile == (1, "float32") else None
+            crs, transform, shape = src.crs, src.transform, src.shape
+    except rasterio.errors.RasterioError as exc:
+        raise PriorError(f"{path}: cannot read prior GeoTIFF: {exc}") from exc
+    hint = _rebuild_hint(path, {})
+    missing = [t for t in ("MODEL", BUILD_TAG, *TABLE_TAGS) if t not in tags]
+    if missing or tags.get("UNITS") != UNITS or density is None:
+        why = f"no {', '.join(missing)} tag{'s' * (len(missing) > 1)}" if missing else (
+            f"UNITS tag {tags.get('UNITS')!r}, not {UNITS!r}" if tags.get("UNITS") != UNITS
+            else f"{profile[0]} band(s) of {profile[1]}, not one float32 band")
+        raise PriorError(f"{path}: not a prior written by terrain-prior build ({why}); {hint}")
+    try:
+        model = json.loads(tags["MODEL"])
+    except json.JSONDecodeError as exc:
+        raise PriorError(f"{path}: MODEL tag is not valid JSON ({exc}); {hint}") from exc
+    if not isinstance(model, dict):
+        raise PriorError(f"{path}: MODEL tag is a JSON {type(model).__name__}, not an object; {hint}")
+    hint = _rebuild_hint(path, model)
+    try:
+        grid = Grid(crs, transform, *shape)
+    except GridError as exc:
+        raise PriorError(f"{path}: {exc}; {hint}") from exc
+    if not (density.min() >= 0 and np.isfinite(density.max())):
+        raise PriorError(f"{path}: density must be finite and >= 0; {_bad_cells(~(density >= 0) | ~np.isfinite(density))}; {hint}")
+    total = float(density.sum()) * grid.cell_area
+    if not abs(total - 1.0) <= DENSITY_TOL:
+        raise PriorError(f"{path}: density integrates to {total:.9g}, not 1 (tolerance {DENSITY_TOL:g}); {hint}")
+    return grid, density, model, [tags[t] for t in TABLE_TAGS], hint
+
+
+def _read_table(path: Path, shape: tuple[int, int], hint: str) -> np.memmap:
+    """Memory-map a summed-area table, refusing by name anything but a complete C-order float64 .npy of
+    ``shape`` (never unpickling)."""
+    fmt = np.lib.format
+    try:
+        size = path.stat().st_size
+        if size == 0:
+            raise PriorError(f"{path}: empty (0 bytes), not a summed-area table; {hint}")
+        with open(path, "rb") as f:
+            try:
+                version = fmt.read_magic(f)
+                read_header = {(1, 0): fmt.read_array_header_1_0, (2, 0): fmt.read_array_header_2_0}.get(version)
+                if read_header is None:
+                    raise ValueError(f".npy format version {version} is not one np.save writes for tables")
+                file_shape, fortran, dtype = read_header(f)
+            except (ValueError, EOFError, SyntaxError) as exc:
+                raise PriorError(f"{path}: not a .npy summed-area table ({exc}); {hint}") from exc
+            offset = f.tell()
+    except OSError as exc:
+        raise PriorError(f"{path}: cannot read summed-area table: {exc.strerror or exc}; {hint}") from exc
+    if dtype.hasobject:
+        raise PriorError(f"{path}: holds pickled Python objects, not a float64 table (never unpickled); {hint}")
+    if dtype != np.float64 or fortran:
+        raise PriorError(f"{path}: table is {dtype.str}{' Fortran-order' if fortran else ''}, must be C-order float64 (<f8); {hint}")
+    if file_shape != shape:
+        raise PriorError(f"{path}: table shape {file_shape} does not match the prior's grid: expected {shape}; {hint}")
+    want = offset + dtype.itemsize * shape[0] * shape[1]
+    if size != want:
+        state = "truncated" if size < want else "longer than its header says"
+        raise PriorError(f"{path}: {state}: {size} bytes, expected {want}; {hint}")
+    return np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=shape)
+
+
+def _check_table(table: np.ndarray, path: Path, tif: Path, digest: str, values: np.ndarray, hint: str) -> None:
+    """PriorError unless ``table`` is finite, zero-padded, hashes to ``digest`` (what GeoTIFF ``tif``
+    records of its build) and its last row and column are the running totals of ``values`` (cell mass of r or r^2)."""
+    h = table_hash()
+    step = max(1, SCAN_ROWS_BYTES // table[0].nbytes)
+    for r in range(0, table.shape[0], step):
+        chunk = np.ascontiguousarray(table[r : r + step])
+        if not np.isfinite(chunk).all():
+            bad = np.argwhere(~np.isfinite(chunk))[0]
+            raise PriorError(f"{path}: NaN or infinite table entry at row {r + bad[0]}, col {bad[1]}; {hint}")
+        h.update(chunk)
+    if table[0].any() or table[:, 0].any():
+        raise PriorError(f"{path}: first row and column of a padded summed-area table must be zero; {hint}")
+    if h.hexdigest() != digest:
+        raise PriorError(
+            f"{path}: not the table of the build {tif.name} records (checksum differs): the prior set is "
+            f"mixed from two builds or damaged; {hint}"
+        )
+    scale = DENSITY_TOL * max(float(table[-1, -1]), np.finfo(float).tiny)
+    for axis, totals in ((0, table[-1, 1:]), (1, table[1:, -1])):
+        off = float(np.abs(np.cumsum(values.sum(axis=axis)) - totals).max())
+        if not off <= scale:
+            raise PriorError(f"{path}: table totals differ from the density's by {off:.3g} (tolerance {scale:.3g}); {hint}")
 
 
 @nb.njit(cache=True, inline="always")
@@ -114,6 +238,8 @@ class TerrainPrior:
         expected = (grid.height + 1, grid.width + 1)
         if sat.shape != expected or sat2.shape != expected:
             raise PriorError(f"summed-area tables must be {expected}, got {sat.shape}, {sat2.shape}")
+        if sat.dtype != np.float64 or sat2.dtype != np.float64:  # float32 sums lose small rectangles' mass
+            raise PriorError(f"summed-area tables must be float64, got {sat.dtype}, {sat2.dtype}")
         self.grid = grid
         self.density = density
         self.sat = sat
@@ -128,11 +254,7 @@ class TerrainPrior:
             raise PriorError(f"likelihood array shape {r.shape} does not match grid {grid.shape}")
         # min/max first (NaN propagates): no full-size temporaries unless something is wrong
         if not (r.min() >= 0 and np.isfinite(r.max())):
-            bad = ~np.isfinite(r) | (r < 0)
-            rows, cols = np.nonzero(bad)
-            raise PriorError(
-                f"likelihood must be finite and >= 0; {bad.sum()} bad cells, first at row {rows[0]}, col {cols[0]}"
-            )
+            raise PriorError(f"likelihood must be finite and >= 0; {_bad_cells(~np.isfinite(r) | (r < 0))}")
         total = float(r.sum()) * grid.cell_area
         if not total > 0:
             raise PriorError(
@@ -160,20 +282,26 @@ class TerrainPrior:
 
     @classmethod
     def read(cls, path: str | Path) -> TerrainPrior:
-        """Load a prior written by :meth:`write` (tables memory-mapped)."""
+        """Load a prior written by :meth:`write` (tables memory-mapped), after checking it is one: the
+        GeoTIFF's prior tags, a finite non-negative density integrating to 1, and two complete float64
+        tables that hash to the checksums its build recorded and total up to its density. Anything else
+        (a plain GeoTIFF, a set mixed from two builds, a damaged or foreign table) is a PriorError naming
+        the file and how to rebuild."""
         path = Path(path)
         sat_p, sat2_p = sat_paths(path)
         for p in (path, sat_p, sat2_p):
             if not p.exists():
-                raise PriorError(f"{p}: missing; a prior is prior.tif plus prior.sat.npy and prior.sat2.npy beside it")
-        try:
-            with rasterio.open(path) as src:
-                density = src.read(1).astype(np.float64)
-                grid = Grid(src.crs, src.transform, src.height, src.width)
-                model = json.loads(src.tags().get("MODEL", "{}"))
-        except rasterio.errors.RasterioIOError as exc:
-            raise PriorError(f"{path}: cannot read prior GeoTIFF: {exc}") from exc
-        return cls(grid, density, np.load(sat_p, mmap_mode="r"), np.load(sat2_p, mmap_mode="r"), model)
+                raise PriorError(
+                    f"{p}: missing; a prior is prior.tif plus prior.sat.npy and prior.sat2.npy beside it; "
+                    f"{_rebuild_hint(path, {})}"
+                )
+        grid, density, model, digests, hint = _read_geotiff(path)
+        shape = (grid.height + 1, grid.width + 1)
+        tables = [_read_table(p, shape, hint) for p in (sat_p, sat2_p)]
+        mass = density * grid.cell_area
+        for table, p, digest, values in zip(tables, (sat_p, sat2_p), digests, (mass, mass * density), strict=True):
+            _check_table(table, p, path, digest, values, hint)
+        return cls(grid, density, *tables, model)
 
     def sample(
         self, n: int, rng: np.random.Generator, region: tuple[float, float, float, float] | None = None

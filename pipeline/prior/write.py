@@ -4,13 +4,20 @@ style ``prior.qml`` beside it, committed together.
 
 The density and tables arrive in row strips, so a prior larger than memory is written as it is
 computed (the tiled build) and an in-memory one is written the same way.
+
+One build binds the files: ``prior.tif`` carries a random build id (tag ``PRIOR_BUILD``) and the
+SHA-1 of each table's data (tags ``SAT_SHA1``, ``SAT2_SHA1``); the tables stay plain ``.npy`` files.
+The GeoTIFF is renamed into place last, and the old one is removed just before the tables are, so an
+interrupted rebuild leaves no ``prior.tif`` (absent) rather than an old one beside new tables, and
+:meth:`pipeline.prior.terrain.TerrainPrior.read` refuses any set whose tables do not match the tags.
 """
 
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
-import tempfile
+import uuid
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
@@ -20,7 +27,7 @@ import rasterio.shutil
 from rasterio.io import DatasetWriter
 from rasterio.windows import Window
 
-from common.atomic import atomic_paths
+from common.atomic import atomic_paths, scratch_dir
 from pipeline.gis.grid import Grid
 from pipeline.prior.style import prior_qml, style_path
 
@@ -30,6 +37,17 @@ UNITS = "probability density per square metre"
 """The ``UNITS`` tag of a prior GeoTIFF."""
 STYLE_SAMPLE_EDGE = 1024
 """The prior's style is fitted to every k-th row and column, k chosen so at most this many of each."""
+BUILD_TAG = "PRIOR_BUILD"
+"""The tag holding a prior's build id (32 hex digits, random per build)."""
+TABLE_TAGS = ("SAT_SHA1", "SAT2_SHA1")
+"""The tags holding the SHA-1 (hex) of the data bytes after the ``.npy`` header of each table, as
+:func:`sat_paths` orders them."""
+
+
+def table_hash() -> hashlib._Hash:
+    """A fresh hash of table data (SHA-1: it guards against mixed or damaged files, not against forgery,
+    and is twice as fast as SHA-256 here)."""
+    return hashlib.sha1(usedforsecurity=False)
 
 
 def geotiff_profile(grid: Grid, dtype: str, compress: str | None = "deflate", **options) -> dict:
@@ -51,8 +69,8 @@ def cog_writer(path: str | Path, grid: Grid, dtype: str, resampling: str = "AVER
     with GDAL's ``resampling`` (AVERAGE for densities, NEAREST for category codes). ``options``: extra
     profile keys (e.g. ``nodata``). The uncompressed source lives in a scratch folder beside ``path``."""
     path = Path(path)
-    with tempfile.TemporaryDirectory(prefix=f".{path.stem}.", dir=path.parent) as scratch:
-        plain = Path(scratch) / "plain.tif"
+    with scratch_dir(path) as scratch:
+        plain = scratch / "plain.tif"
         # the COG copy compresses; its uncompressed source is cheaper to write
         with rasterio.open(plain, "w", **geotiff_profile(grid, dtype, None, BIGTIFF="IF_SAFER", **options)) as dst:
             yield dst
@@ -65,6 +83,11 @@ def cog_writer(path: str | Path, grid: Grid, dtype: str, resampling: str = "AVER
 def prior_tags(model: dict) -> dict[str, str]:
     """Tags of a prior GeoTIFF: the model description as JSON (``MODEL``) and the density's ``UNITS``."""
     return {"MODEL": json.dumps(model), "UNITS": UNITS}
+
+
+def build_tags(build: str, digests: Iterable[str]) -> dict[str, str]:
+    """Tags binding a prior GeoTIFF to its tables: the build id and each table's digest (hex)."""
+    return {BUILD_TAG: build, **dict(zip(TABLE_TAGS, digests, strict=True))}
 
 
 def sat_paths(path: str | Path) -> tuple[Path, Path]:
@@ -93,10 +116,13 @@ def write_prior(
         header = np.lib.format.open_memmap(t_sat, mode="w+", dtype=np.float64, shape=(h + 1, w + 1)).offset
         np.lib.format.open_memmap(t_sat2, mode="w+", dtype=np.float64, shape=(h + 1, w + 1))
         with (cog_writer(t_tif, grid, "float32") as dst, open(t_sat, "r+b") as f_sat, open(t_sat2, "r+b") as f_sat2):
-            zero = memoryview(np.zeros(w + 1))
-            for f_out in (f_sat, f_sat2):
+            hashes = (table_hash(), table_hash())
+            outs = ((f_sat, hashes[0]), (f_sat2, hashes[1]))
+            zero = memoryview(np.zeros(w + 1)).cast("B")
+            for f_out, digest in outs:
                 f_out.seek(header)
                 f_out.write(zero)
+                digest.update(zero)
             r0 = 0
             for density, sat, sat2 in strips:
                 n = density.shape[0]
@@ -104,11 +130,16 @@ def write_prior(
                     raise ValueError(f"table strips must be ({n}, {w + 1}), got {sat.shape}, {sat2.shape}")
                 dst.write(density.astype(np.float32, copy=False), 1, window=Window(0, r0, w, n))
                 sample.append(np.array(density[(-r0) % step :: step, ::step], dtype=np.float32))  # a copy: buffers are reused
-                f_sat.write(memoryview(np.ascontiguousarray(sat, dtype=np.float64)).cast("B"))
-                f_sat2.write(memoryview(np.ascontiguousarray(sat2, dtype=np.float64)).cast("B"))
+                for (f_out, digest), table in zip(outs, (sat, sat2), strict=True):
+                    data = memoryview(np.ascontiguousarray(table, dtype=np.float64)).cast("B")
+                    f_out.write(data)
+                    digest.update(data)
                 r0 += n
             if r0 != h:
                 raise ValueError(f"strips cover {r0} rows of a {h}-row grid")
-            dst.update_tags(**prior_tags(model))
+            dst.update_tags(**prior_tags(model), **build_tags(uuid.uuid4().hex, (d.hexdigest() for d in hashes)))
         t_qml.write_text(prior_qml(np.concatenate(sample)), encoding="utf-8")
+        # The renames follow one by one: without the old prior.tif, a kill between them leaves no prior
+        # (and tables that read refuses) instead of an old GeoTIFF beside new tables.
+        path.unlink(missing_ok=True)
     return path
