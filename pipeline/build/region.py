@@ -36,8 +36,9 @@ class UnusedFeatureWarning(UserWarning):
     """Features of the config that a ``--model`` has no table for, left out of the prior."""
 
 
-FIXED_BYTES = 256 << 20
-"""Memory a build needs whatever the grid size (libraries, GDAL's block cache), bytes."""
+FIXED_BYTES = 384 << 20
+"""Memory a build needs whatever the grid size (numpy, GDAL, numba and the other libraries loaded, GDAL's
+block cache), bytes."""
 WORK_BYTES_PER_CELL = 24
 """Peak temporaries while one feature is built (distance transform, DEM and its slope), bytes per cell."""
 PRIOR_BYTES_PER_CELL = 48
@@ -48,7 +49,8 @@ _FEATURE_BYTES = {"mask": 2, "classes": 2, "categories": 4, "distance": 8, "slop
 
 def build_memory_bytes(config: RegionConfig, prior: bool = True) -> int:
     """Estimated peak memory (bytes) of building the features of ``config`` (and its prior if ``prior``)
-    in memory; measured peaks are 0.5-0.9 of it (tests/pipeline/build/test_memory.py)."""
+    in memory. Measured peaks (the process's whole resident memory) of the bundled region's prior at
+    0.5-8 million cells are 0.75-0.85 of it (tests/pipeline/build/test_memory.py)."""
     per_cell = sum(_FEATURE_BYTES[f.type] for f in config.features.values()) + WORK_BYTES_PER_CELL
     per_cell += PRIOR_BYTES_PER_CELL if prior else 0
     return FIXED_BYTES + config.grid.height * config.grid.width * per_cell
@@ -71,7 +73,7 @@ def check_memory(config: RegionConfig, prior: bool = True) -> None:
         what = "prior" if prior else "features"
         raise BuildMemoryError(
             f"{config.path}: [region]: the {what} of {config.grid.height:,} x {config.grid.width:,} cells need about "
-            f"{need / 2**30:.3g} GiB of memory; this machine has {have / 2**30:.3g} GiB available. Build it tile by "
+            f"{need / 2**30:,.1f} GiB of memory; this machine has {have / 2**30:,.1f} GiB available. Build it tile by "
             "tile (terrain-prior build --tiled, or learn --tiled), or use a larger cell_size or smaller bounds"
         )
 
