@@ -3,6 +3,12 @@
 from common.exports import lazy_exports
 
 _EXPORTS = {
+    "BuildMemoryError": "region",
+    "UnusedFeatureWarning": "region",
+    "available_memory_bytes": "region",
+    "build_memory_bytes": "region",
+    "check_memory": "region",
+    "unused_features": "region",
     "build_features": "region",
     "build_prior": "region",
     "build_region_prior": "region",

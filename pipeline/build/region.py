@@ -6,9 +6,12 @@ Each input layer is read once and shared by the features that use it.
 from __future__ import annotations
 
 import json
+import resource
+import warnings
 from pathlib import Path
 
 import numpy as np
+import psutil
 from tqdm import tqdm
 
 from common.atomic import atomic_paths
@@ -24,6 +27,56 @@ from pipeline.prior.likelihood import LikelihoodModel
 from pipeline.prior.style import paletted_qml, pseudocolor_qml, style_path
 from pipeline.prior.terrain import PriorError, TerrainPrior
 from pipeline.prior.write import cog_writer
+
+
+class BuildMemoryError(ValueError):
+    """A grid too large to build in this machine's memory; the message gives the estimate and the way out."""
+
+
+class UnusedFeatureWarning(UserWarning):
+    """Features of the config that a ``--model`` has no table for, left out of the prior."""
+
+
+FIXED_BYTES = 384 << 20
+"""Memory a build needs whatever the grid size (numpy, GDAL, numba and the other libraries loaded, GDAL's
+block cache), bytes."""
+WORK_BYTES_PER_CELL = 24
+"""Peak temporaries while one feature is built (distance transform, DEM and its slope), bytes per cell."""
+PRIOR_BYTES_PER_CELL = 48
+"""r, the density and the two float64 summed-area tables (plus float32 copies on writing), bytes per cell."""
+_FEATURE_BYTES = {"mask": 2, "classes": 2, "categories": 4, "distance": 8, "slope": 8, "raster": 8}
+"""Bytes per cell of each feature type's grid (int16 masks and classes, int32 codes, float64 values)."""
+
+
+def build_memory_bytes(config: RegionConfig, prior: bool = True) -> int:
+    """Estimated peak memory (bytes) of building the features of ``config`` (and its prior if ``prior``)
+    in memory. Measured peaks (the process's whole resident memory) of the bundled region's prior at
+    0.5-8 million cells are 0.75-0.85 of it (tests/pipeline/build/test_memory.py)."""
+    per_cell = sum(_FEATURE_BYTES[f.type] for f in config.features.values()) + WORK_BYTES_PER_CELL
+    per_cell += PRIOR_BYTES_PER_CELL if prior else 0
+    return FIXED_BYTES + config.grid.height * config.grid.width * per_cell
+
+
+def available_memory_bytes() -> int:
+    """Memory this process can still get: the system's available memory, capped by an address-space
+    limit (``ulimit -v``) when one is set."""
+    available = psutil.virtual_memory().available
+    soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+    if soft != resource.RLIM_INFINITY:
+        available = min(available, soft - psutil.Process().memory_info().vms)
+    return max(int(available), 0)
+
+
+def check_memory(config: RegionConfig, prior: bool = True) -> None:
+    """Refuse, before allocating anything, a build whose estimated memory exceeds what is available."""
+    need, have = build_memory_bytes(config, prior), available_memory_bytes()
+    if need > have:
+        what = "prior" if prior else "features"
+        raise BuildMemoryError(
+            f"{config.path}: [region]: the {what} of {config.grid.height:,} x {config.grid.width:,} cells need about "
+            f"{need / 2**30:,.1f} GiB of memory; this machine has {have / 2**30:,.1f} GiB available. Build it tile by "
+            "tile (terrain-prior build --tiled, or learn --tiled), or use a larger cell_size or smaller bounds"
+        )
 
 
 class _Layers:
@@ -130,7 +183,9 @@ _BUILDERS = {
 
 
 def build_features(config: RegionConfig, progress: bool = True) -> FeatureStack:
-    """All features of a region config on its grid (classes features after the features they bin)."""
+    """All features of a region config on its grid (classes features after the features they bin);
+    BuildMemoryError when they would not fit in memory."""
+    check_memory(config, prior=False)
     stack = FeatureStack(config.grid)
     layers = _Layers(config)
     specs = sorted(config.features.values(), key=lambda f: f.type == "classes")
@@ -155,11 +210,38 @@ def build_prior(stack: FeatureStack, model: LikelihoodModel, provenance: dict | 
     return TerrainPrior.from_array(r, stack.grid, description)
 
 
+def unused_features(config: RegionConfig, terms: set[str] | dict) -> list[str]:
+    """Features of ``config`` that a prior with tables for ``terms`` would not use: no table of their own
+    and not the source of a used ``classes`` feature."""
+    used = set(terms)
+    for name in terms:
+        spec = config.features.get(name)
+        if spec is not None and spec.type == "classes":
+            used.add(spec.source)
+    return [name for name in config.features if name not in used]
+
+
 def region_model(config: RegionConfig, model: LikelihoodModel | None = None) -> LikelihoodModel:
-    """``model``, else the config's ``[likelihood.*]`` tables; PriorError when there are neither."""
+    """``model``, else the config's ``[likelihood.*]`` tables; PriorError when there are neither.
+
+    Every feature of the config must count: with the config's own tables a feature with no table (and
+    not binned by a feature that has one) is a PriorError naming it; a ``model`` given apart from the
+    config (``--model``) may use fewer features, and those it leaves out are named in a warning.
+    """
+    own = model is None
     model = model or config.model
     if model is None:
         raise PriorError(f"{config.path}: no [likelihood.<feature>] tables and no model given")
+    unused = unused_features(config, model.terms)
+    if unused and own:
+        raise PriorError(
+            f"{config.path}: [features.{unused[0]}] has no [likelihood.{unused[0]}] table"
+            + (f" (nor do {unused[1:]})" if len(unused) > 1 else "")
+            + ", so the prior would leave it out: add a table (a likelihood of 1 is neutral) or remove the feature"
+        )
+    if unused:
+        warnings.warn(f"{config.path}: the model has no table for the features {unused}; they are left out of the prior",
+                      UnusedFeatureWarning, stacklevel=2)
     return model
 
 
@@ -176,8 +258,10 @@ def build_region_prior(
     config: RegionConfig, model: LikelihoodModel | None = None, progress: bool = True, provenance: dict | None = None
 ) -> TerrainPrior:
     """Features and prior of a region; ``model`` overrides the config's ``[likelihood.*]`` tables;
-    ``provenance`` is stored with the model (default :func:`region_provenance`)."""
+    ``provenance`` is stored with the model (default :func:`region_provenance`). BuildMemoryError
+    before anything is allocated when the build would not fit in memory."""
     model = region_model(config, model)
+    check_memory(config)
     stack = build_features(config, progress)
     return build_prior(stack, model, region_provenance(config) if provenance is None else provenance)
 

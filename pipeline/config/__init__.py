@@ -4,6 +4,7 @@ from common.exports import lazy_exports
 
 _EXPORTS = {
     "ConfigError": "region",
+    "ConfigWarning": "region",
     "FeatureSpec": "region",
     "RegionConfig": "region",
     "load_config": "region",

@@ -15,6 +15,7 @@ resolved relative to the config file. Example (``terrain_data/region.toml`` is a
     layer = "roads"                    # optional when the file has one layer
     where = "highway IN ('primary', 'secondary')"   # optional OGR SQL attribute filter
     restore_index = false              # shapefiles: rebuild a stale .shx on a temporary copy
+    allow_empty_geometries = false     # features with no geometry: an error unless true (then skipped, warned)
 
     [layers.dem]                       # raster (by suffix .tif/.tiff/.vrt/.img/.asc) or point cloud (.las/.laz/.ply/.pcd/.xyz)
     path = "dem.tif"                   # point clouds: optional crs (overrides the file's; needed by a LAS without one),
@@ -34,15 +35,16 @@ resolved relative to the config file. Example (``terrain_data/region.toml`` is a
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from rasterio.crs import CRS
 
-from pipeline.gis.crs import transformer
+from pipeline.gis.crs import to_pyproj, transformer
 from pipeline.gis.grid import Grid, GridError
-from pipeline.gis.layers import LayerSpec
+from pipeline.gis.layers import LayerError, LayerSpec
 from pipeline.gis.lidar import GROUND, LAS_SUFFIXES, LidarError, PointFilter
 from pipeline.gis.lidar import SUFFIXES as POINTCLOUD_SUFFIXES
 from pipeline.prior.likelihood import LikelihoodError, LikelihoodModel, read_toml
@@ -50,6 +52,14 @@ from pipeline.prior.likelihood import LikelihoodError, LikelihoodModel, read_tom
 
 class ConfigError(ValueError):
     """A region config that is malformed; the message names the file and key."""
+
+
+class ConfigWarning(UserWarning):
+    """A region config that works but probably not as meant (e.g. a grid CRS whose metres are not ground metres)."""
+
+
+SCALE_TOLERANCE = 0.01
+"""Warn when the grid CRS's point scale at the grid's centre differs from 1 by more than this (UTM: < 0.001)."""
 
 
 TOP_LEVEL_TABLES = {"region", "layers", "features", "likelihood", "meta", "learn"}
@@ -193,6 +203,8 @@ def _parse_grid(t: _Table) -> Grid:
     bounds = t.get("bounds", list, what="[xmin, ymin, xmax, ymax]")
     if len(bounds) != 4 or not all(isinstance(b, int | float) and not isinstance(b, bool) for b in bounds):
         raise t.err("bounds", f"expected 4 numbers [xmin, ymin, xmax, ymax], got {bounds!r}")
+    if not all(math.isfinite(b) for b in bounds):
+        raise t.err("bounds", f"must be finite numbers, got {bounds!r}")
     cell = t.number("cell_size", 20.0, positive=True)
     if crs_value.lower() == "utm":
         bounds_crs = _parse_crs(t, "bounds_crs", t.get("bounds_crs", str, "EPSG:4326"))
@@ -208,9 +220,21 @@ def _parse_grid(t: _Table) -> Grid:
     if bounds_crs != grid_crs:
         bounds = transformer(bounds_crs, grid_crs).transform_bounds(*bounds, densify_pts=21)
     try:
-        return Grid.from_bounds(tuple(bounds), cell, grid_crs)
+        grid = Grid.from_bounds(tuple(bounds), cell, grid_crs)
     except GridError as exc:
-        raise ConfigError(f"{t.source}: [{t.key}]: {exc}") from None
+        raise t.err(exc.key, str(exc)) from None
+    k = grid.scale_factor()
+    if abs(k - 1.0) > SCALE_TOLERANCE:
+        x, y = (grid.bounds[0] + grid.bounds[2]) / 2.0, (grid.bounds[1] + grid.bounds[3]) / 2.0
+        _, lat = transformer(grid_crs, "EPSG:4326").transform(x, y)
+        warnings.warn(
+            f"{t.source}: {t.key}.crs: {to_pyproj(grid_crs).name} has a scale factor of {k:.4g} at the grid's "
+            f"centre (latitude {lat:.2f}°; 1/cos φ = {1 / math.cos(math.radians(lat)):.4g} for Web Mercator): "
+            f"its metres are {k:.4g} ground metres, so cell_size, buffers and distances are off by that factor; "
+            "a local projected CRS (crs = \"utm\") has a scale factor of about 1",
+            ConfigWarning, stacklevel=4,
+        )
+    return grid
 
 
 def _layer_kind(path: Path) -> str:
@@ -224,7 +248,8 @@ def _layer_kind(path: Path) -> str:
 
 def _parse_layer(source: Path, name: str, d: Any) -> LayerSpec:
     t = _Table(source, f"layers.{name}", d)
-    t.check_keys({"path", "layer", "where", "restore_index", "band", "kind", "crs", "classes", "returns"})
+    t.check_keys({"path", "layer", "where", "restore_index", "allow_empty_geometries", "band", "kind", "crs", "classes",
+                  "returns"})
     path = Path(t.get("path", str, what="a file path"))
     if not path.is_absolute():
         path = source.parent / path
@@ -252,17 +277,21 @@ def _parse_layer(source: Path, name: str, d: Any) -> LayerSpec:
                 points = PointFilter(**kw)
             except LidarError as exc:
                 raise t.err(key, str(exc)) from None
-    return LayerSpec(
-        name=name,
-        path=path,
-        kind=kind,
-        layer=t.get("layer", str, None),
-        where=t.get("where", str, None),
-        restore_index=restore_index,
-        band=band,
-        crs=None if crs is None else _parse_crs(t, "crs", crs),
-        points=points,
-    )
+    try:
+        return LayerSpec(
+            name=name,
+            path=path,
+            kind=kind,
+            layer=t.get("layer", str, None),
+            where=t.get("where", str, None),
+            restore_index=restore_index,
+            band=band,
+            allow_empty_geometries=t.get("allow_empty_geometries", bool, False, "true or false"),
+            crs=None if crs is None else _parse_crs(t, "crs", crs),
+            points=points,
+        )
+    except LayerError as exc:  # the where filter: the one check LayerSpec makes itself
+        raise t.err("where", str(exc)) from None
 
 
 def _parse_feature(source: Path, name: str, d: Any, layers: dict[str, LayerSpec]) -> FeatureSpec:
@@ -364,8 +393,8 @@ def parse_config(d: dict, source: Path) -> RegionConfig:
     if "likelihood" in d:
         try:
             model = LikelihoodModel.from_dict({"likelihood": d["likelihood"], "meta": d.get("meta", {})}, str(source))
-        except LikelihoodError as exc:
-            raise ConfigError(f"{source}: {exc}") from None
+        except LikelihoodError as exc:  # names the file and table already
+            raise ConfigError(str(exc)) from None
         missing = sorted(set(model.terms) - set(features))
         if missing:
             raise ConfigError(f"{source}: [likelihood.{missing[0]}] has no feature; features are {sorted(features)}")

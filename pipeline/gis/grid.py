@@ -6,14 +6,22 @@ from dataclasses import dataclass
 
 import numpy as np
 from affine import Affine
+from pyproj import Proj
 from rasterio.crs import CRS
+
+from pipeline.gis.crs import to_pyproj, transformer
 
 NODATA_CODE = -1
 """Code of a categorical cell with no data (continuous features use NaN)."""
 
 
 class GridError(ValueError):
-    """A grid that cannot carry metric features (geographic CRS, bad bounds or cell size)."""
+    """A grid that cannot carry metric features (geographic CRS, bad bounds or cell size); ``key`` is the
+    ``[region]`` key at fault ("crs", "bounds" or "cell_size")."""
+
+    def __init__(self, msg: str, key: str) -> None:
+        super().__init__(msg)
+        self.key = key
 
 
 @dataclass(frozen=True)
@@ -35,13 +43,22 @@ class Grid:
         if crs.is_geographic:
             raise GridError(
                 f"grid CRS {crs.to_string()} is geographic (degrees); features need metres: "
-                "choose a projected CRS or set crs = \"utm\" in the region config"
+                "choose a projected CRS or set crs = \"utm\" in the region config", "crs"
+            )
+        pcrs = to_pyproj(crs)
+        units = {(a.unit_name, a.unit_conversion_factor) for a in pcrs.axis_info[:2]}
+        if units != {("metre", 1.0)}:
+            names = ", ".join(sorted({name for name, _ in units}))
+            code = f" ({crs.to_string()})" if crs.to_epsg() else ""
+            raise GridError(
+                f"grid CRS {pcrs.name!r}{code} has units of {names}, not metres; cell_size, buffers and distances "
+                "are metres: choose a CRS in metres (e.g. the UTM zone in metres, or crs = \"utm\")", "crs"
             )
         t = self.transform
         if t.b != 0 or t.d != 0 or t.a <= 0 or t.e >= 0:
-            raise GridError(f"grid transform must be north-up with positive cell sizes, got {t!r}")
+            raise GridError(f"grid transform must be north-up with positive cell sizes, got {t!r}", "cell_size")
         if self.height <= 0 or self.width <= 0:
-            raise GridError(f"grid shape must be positive, got {self.height} x {self.width}")
+            raise GridError(f"grid shape must be positive, got {self.height} x {self.width}", "bounds")
 
     @classmethod
     def from_bounds(
@@ -52,13 +69,24 @@ class Grid:
         The extent is rounded up to whole cells from the north-west corner.
         """
         xmin, ymin, xmax, ymax = map(float, bounds)
+        if not all(np.isfinite((xmin, ymin, xmax, ymax, cell_size))):
+            raise GridError(f"grid bounds and cell_size must be finite, got bounds {bounds}, cell_size {cell_size}", "bounds")
         if not (xmax > xmin and ymax > ymin):
-            raise GridError(f"grid bounds must have xmax > xmin and ymax > ymin, got {bounds}")
+            raise GridError(f"grid bounds must have xmax > xmin and ymax > ymin, got {bounds}", "bounds")
         if not cell_size > 0:
-            raise GridError(f"cell_size must be positive metres, got {cell_size}")
+            raise GridError(f"cell_size must be positive metres, got {cell_size}", "cell_size")
         width = int(np.ceil((xmax - xmin) / cell_size - 1e-9))
         height = int(np.ceil((ymax - ymin) / cell_size - 1e-9))
         return cls(crs, Affine(cell_size, 0.0, xmin, 0.0, -cell_size, ymax), height, width)
+
+    def scale_factor(self) -> float:
+        """Point scale factor of the CRS at the grid's centre: grid metres per ground metre (1/cos φ for
+        Web Mercator, 0.9996..1.001 in a UTM zone)."""
+        x, y = (self.bounds[0] + self.bounds[2]) / 2.0, (self.bounds[1] + self.bounds[3]) / 2.0
+        geo = to_pyproj(self.crs).geodetic_crs
+        lon, lat = transformer(self.crs, geo).transform(x, y)
+        f = Proj(to_pyproj(self.crs)).get_factors(lon, lat)
+        return float(np.sqrt(f.meridional_scale * f.parallel_scale))
 
     @property
     def shape(self) -> tuple[int, int]:

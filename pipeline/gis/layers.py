@@ -57,6 +57,33 @@ class LayerSpec:
     band: int = 1
     crs: CRS | None = None
     points: PointFilter | None = None
+    allow_empty_geometries: bool = False
+
+    def __post_init__(self) -> None:
+        if self.where is not None:
+            problem = _where_problem(self.where)
+            if problem:
+                raise LayerError(f"{_where(self)}: where = {self.where!r}: {problem}; give one SQL expression")
+
+
+def _where_problem(where: str) -> str | None:
+    """Why ``where`` is not a single SQL expression (a ``;`` statement separator, a comment, an unclosed
+    quote or an empty filter), or None. OGR keeps only the text before a ``;`` and a comment hides the
+    rest, so either would silently change the filter."""
+    if not where.strip():
+        return "empty filter"
+    quote = None
+    for i, ch in enumerate(where):
+        if quote:
+            if ch == quote:
+                quote = None  # a doubled quote ('') closes and reopens: same result
+        elif ch in "'\"":
+            quote = ch
+        elif ch == ";":
+            return f"';' at character {i + 1} ends the expression (the rest would be dropped)"
+        elif where.startswith(("--", "/*"), i):
+            return f"SQL comment {where[i:i + 2]!r} at character {i + 1}"
+    return f"unclosed {quote} quote" if quote else None
 
 
 @dataclass(frozen=True)
@@ -108,6 +135,20 @@ def _stale_index_hint(spec: LayerSpec, exc: Exception) -> str:
     return f"{_where(spec)}: cannot read: {msg}"
 
 
+def _fid_list(fids: np.ndarray, most: int = 10) -> str:
+    shown = ", ".join(str(int(f)) for f in fids[:most])
+    return shown + (f", ... ({fids.size} in all)" if fids.size > most else "")
+
+
+def _check_finite(spec: LayerSpec, geoms: np.ndarray, fids: np.ndarray, where: str) -> None:
+    """Refuse geometries with NaN or infinite vertices (GEOS cannot repair or buffer them)."""
+    coords, index = shapely.get_coordinates(geoms, return_index=True)
+    bad = np.unique(index[~np.isfinite(coords).all(axis=1)])
+    if bad.size:
+        raise LayerError(f"{_where(spec)}: {bad.size} features have NaN or infinite coordinates{where} "
+                         f"(FIDs {_fid_list(fids[bad])}); fix or remove them")
+
+
 def read_vector(spec: LayerSpec, grid: Grid, columns: list[str] | None = None) -> VectorLayer:
     """Read a vector layer (optionally filtered by ``spec.where``), repair it, and reproject it to ``grid.crs``.
 
@@ -134,8 +175,8 @@ def read_vector(spec: LayerSpec, grid: Grid, columns: list[str] | None = None) -
         if info["crs"] is None:
             raise LayerError(f"{_where(spec)}: the layer has no CRS (for a shapefile, a .prj is missing); cannot place it on the grid")
         try:
-            _, _, wkb, values = pyogrio.raw.read(
-                path, layer=layer, where=spec.where, columns=columns or [], return_fids=False
+            _, fids, wkb, values = pyogrio.raw.read(
+                path, layer=layer, where=spec.where, columns=columns or [], return_fids=True
             )
         except pyogrio.errors.FieldError as exc:
             raise LayerError(f"{_where(spec)}: bad attribute filter where = {spec.where!r}: {exc}") from None
@@ -143,15 +184,22 @@ def read_vector(spec: LayerSpec, grid: Grid, columns: list[str] | None = None) -
             if spec.where and "sql" in str(exc).lower():
                 raise LayerError(f"{_where(spec)}: bad attribute filter where = {spec.where!r}: {exc}") from None
             raise LayerError(_stale_index_hint(spec, exc)) from None
-    geoms = shapely.from_wkb(wkb) if wkb is not None else np.empty(0, dtype=object)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # NaN coordinates: refused by name just below
+        geoms = shapely.from_wkb(wkb) if wkb is not None else np.empty(0, dtype=object)
+    fids = np.asarray(fids) if fids is not None else np.arange(geoms.size)
     keep = ~shapely.is_missing(geoms) & ~shapely.is_empty(geoms)
     if not keep.all():
-        hint = ""
-        if spec.path.suffix.lower() == ".shp" and not spec.restore_index:
-            hint = f" (a stale .shx index reads as missing shapes: try restore_index = true in [layers.{spec.name}])"
-        warnings.warn(f"{_where(spec)}: {int((~keep).sum())} of {keep.size} features have no geometry and are skipped{hint}",
-                      LayerWarning, stacklevel=2)
-    geoms = geoms[keep]
+        msg = (f"{_where(spec)}: {int((~keep).sum())} of {keep.size} features have no geometry "
+               f"(FIDs {_fid_list(fids[~keep])})")
+        if not spec.allow_empty_geometries:
+            hint = ""
+            if spec.path.suffix.lower() == ".shp" and not spec.restore_index:
+                hint = "; a stale .shx index reads as missing shapes: try restore_index = true, or"
+            raise LayerError(f"{msg}{hint} set allow_empty_geometries = true in [layers.{spec.name}] to skip them")
+        warnings.warn(f"{msg}; skipped (allow_empty_geometries = true)", LayerWarning, stacklevel=2)
+    geoms, fids = geoms[keep], fids[keep]
+    _check_finite(spec, geoms, fids, "")
     attributes = {c: np.asarray(v)[keep] for c, v in zip(columns or [], values, strict=True)}
     invalid = ~shapely.is_valid(geoms)
     n_repaired = int(invalid.sum())
@@ -162,6 +210,7 @@ def read_vector(spec: LayerSpec, grid: Grid, columns: list[str] | None = None) -
     if not src_crs.equals(to_pyproj(grid.crs)):
         tr = transformer(src_crs, grid.crs)
         geoms = shapely.transform(geoms, lambda xy: np.column_stack(tr.transform(xy[:, 0], xy[:, 1])))
+        _check_finite(spec, geoms, fids, f" once reprojected to {grid.crs.to_string()} (outside its area of use?)")
     if geoms.size == 0:
         warnings.warn(f"{_where(spec)}: layer is empty" + (f" after where = {spec.where!r}" if spec.where else ""),
                       LayerWarning, stacklevel=2)

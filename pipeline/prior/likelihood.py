@@ -20,7 +20,11 @@ TOML (``[likelihood.<feature>]`` tables, the same whether hand-set or learned)::
 
 from __future__ import annotations
 
+import dataclasses
+import math
+import numbers
 import tomllib
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Protocol
@@ -41,11 +45,34 @@ def read_toml(path: str | Path, what: str, error: type[ValueError]) -> dict:
     """Parse a TOML file; a missing or malformed file raises ``error`` naming the path and ``what`` it is."""
     path = Path(path)
     try:
-        return tomllib.loads(path.read_text())
+        return tomllib.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise error(f"{path}: {what} not found") from None
+    except IsADirectoryError:
+        raise error(f"{path}: is a directory, not a {what} (TOML file)") from None
+    except OSError as exc:
+        raise error(f"{path}: cannot read the {what}: {exc.strerror or exc}") from None
+    except UnicodeDecodeError as exc:
+        raise error(f"{path}: not a text TOML file (byte {exc.start} is not UTF-8); is it the {what}?") from None
     except tomllib.TOMLDecodeError as exc:
         raise error(f"{path}: not valid TOML: {exc}") from None
+
+
+def _number(key: str, v: object, positive: bool = False) -> float:
+    """``v`` as a finite float >= 0 (> 0 if ``positive``); LikelihoodError naming ``key`` otherwise."""
+    if isinstance(v, bool) or not isinstance(v, numbers.Real):
+        raise LikelihoodError(f"{key} must be a number, got {v!r}")
+    x = float(v)
+    if not (math.isfinite(x) and (x > 0 if positive else x >= 0)):
+        raise LikelihoodError(f"{key} must be {'> 0' if positive else '>= 0'} and finite, got {x}")
+    return x
+
+
+def _numbers(key: str, v: object, positive: bool = False) -> list[float]:
+    """A non-empty list of numbers checked by :func:`_number` (keys ``key[i]``)."""
+    if not isinstance(v, list | tuple) or not v:
+        raise LikelihoodError(f"{key} must be a non-empty list of numbers, got {v!r}")
+    return [_number(f"{key}[{i}]", x, positive) for i, x in enumerate(v)]
 
 
 class Likelihood(Protocol):
@@ -61,6 +88,12 @@ class CategoricalLikelihood:
 
     values: dict[str, float]
     nodata: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.values, Mapping) or not self.values:
+            raise LikelihoodError(f"values must be a table {{ label = likelihood, ... }}, got {self.values!r}")
+        self.values = {str(k): _number(f"values.{k}", v) for k, v in self.values.items()}
+        self.nodata = _number("nodata", self.nodata)
 
     def __call__(self, feature: Feature) -> np.ndarray:
         if feature.kind != "categorical":
@@ -107,10 +140,11 @@ class RoadDistanceLikelihood:
     nodata: float = 1.0
 
     def __post_init__(self) -> None:
-        if not self.rmd > 0:
-            raise LikelihoodError(f"road likelihood rmd must be > 0 metres, got {self.rmd}")
-        if not 0 < self.mv <= 1:
-            raise LikelihoodError(f"road likelihood mv must be in (0, 1], got {self.mv}")
+        self.rmd = _number("rmd", self.rmd, positive=True)
+        self.mv = _number("mv", self.mv, positive=True)
+        if self.mv > 1:
+            raise LikelihoodError(f"mv must be in (0, 1], got {self.mv}")
+        self.nodata = _number("nodata", self.nodata)
 
     def __call__(self, feature: Feature) -> np.ndarray:
         if feature.kind != "continuous":
@@ -133,12 +167,16 @@ class BinnedLikelihood:
     nodata: float = 1.0
 
     def __post_init__(self) -> None:
-        if len(self.edges) != len(self.values) or len(self.edges) == 0:
-            raise LikelihoodError("binned likelihood needs as many edges as values (at least one)")
+        if not (isinstance(self.edges, list | tuple) and self.edges and all(
+                isinstance(e, numbers.Real) and not isinstance(e, bool) and math.isfinite(e) for e in self.edges)):
+            raise LikelihoodError(f"edges must be a non-empty list of finite numbers (left bin edges), got {self.edges!r}")
+        self.edges = [float(e) for e in self.edges]
+        self.values = _numbers("values", self.values)
+        if len(self.edges) != len(self.values):
+            raise LikelihoodError(f"edges and values must be as many, got {len(self.edges)} edges and {len(self.values)} values")
         if np.any(np.diff(self.edges) <= 0):
-            raise LikelihoodError(f"binned likelihood edges must increase, got {self.edges}")
-        if np.any(np.asarray(self.values) < 0):
-            raise LikelihoodError(f"binned likelihood values must be >= 0, got {self.values}")
+            raise LikelihoodError(f"edges must increase, got {self.edges}")
+        self.nodata = _number("nodata", self.nodata)
 
     def __call__(self, feature: Feature) -> np.ndarray:
         if feature.kind != "continuous":
@@ -156,21 +194,26 @@ class BinnedLikelihood:
 _TYPES = {"categorical": CategoricalLikelihood, "road": RoadDistanceLikelihood, "binned": BinnedLikelihood}
 
 
-def likelihood_from_dict(name: str, d: dict) -> Likelihood:
-    """Build one feature's likelihood from its TOML table."""
+def likelihood_from_dict(name: str, d: object, source: str = "config") -> Likelihood:
+    """Build one feature's likelihood from its TOML table; errors name ``source``, the table and the key."""
+    where = f"{source}: [likelihood.{name}]"
+    if not isinstance(d, Mapping):
+        raise LikelihoodError(f"{where}: must be a table (type = ..., ...), got {d!r}")
     d = dict(d)
     kind = d.pop("type", None)
     if kind not in _TYPES:
-        raise LikelihoodError(f"[likelihood.{name}]: type must be one of {sorted(_TYPES)}, got {kind!r}")
-    if kind == "categorical":
-        d["values"] = {str(k): float(v) for k, v in d.get("values", {}).items()}
-        bad = {k: v for k, v in d["values"].items() if not (np.isfinite(v) and v >= 0)}
-        if bad:
-            raise LikelihoodError(f"[likelihood.{name}]: likelihoods must be finite and >= 0, got {bad}")
+        raise LikelihoodError(f"{where}: type must be one of {sorted(_TYPES)}, got {kind!r}")
+    keys = {f.name: f.default is dataclasses.MISSING for f in dataclasses.fields(_TYPES[kind])}
+    unknown = sorted(set(d) - set(keys))
+    if unknown:
+        raise LikelihoodError(f"{where}: unknown keys {unknown}; a {kind} table has {sorted(keys)}")
+    missing = sorted(k for k, required in keys.items() if required and k not in d)
+    if missing:
+        raise LikelihoodError(f"{where}: {missing[0]} is missing")
     try:
         return _TYPES[kind](**d)
-    except TypeError as exc:
-        raise LikelihoodError(f"[likelihood.{name}]: {exc}") from exc
+    except LikelihoodError as exc:  # the table's own check, naming the key
+        raise LikelihoodError(f"{where}: {exc}") from None
 
 
 @dataclass
@@ -185,8 +228,11 @@ class LikelihoodModel:
         r = np.ones(stack.grid.shape, dtype=np.float64)
         for name, term in self.terms.items():
             if name not in stack:
-                raise LikelihoodError(f"likelihood for {name!r} but no such feature; features: {sorted(stack.features)}")
-            r *= term(stack[name])
+                raise LikelihoodError(f"[likelihood.{name}]: no such feature; features: {sorted(stack.features)}")
+            try:
+                r *= term(stack[name])
+            except LikelihoodError as exc:  # a table that does not fit its feature: name the table
+                raise LikelihoodError(f"[likelihood.{name}]: {exc}") from None
         return r
 
     def to_dict(self) -> dict:
@@ -200,7 +246,10 @@ class LikelihoodModel:
         tables = d.get("likelihood")
         if not isinstance(tables, dict) or not tables:
             raise LikelihoodError(f"{source}: no [likelihood.<feature>] tables")
-        return cls({n: likelihood_from_dict(n, t) for n, t in tables.items()}, dict(d.get("meta", {})))
+        meta = d.get("meta", {})
+        if not isinstance(meta, dict):
+            raise LikelihoodError(f"{source}: [meta] must be a table, got {meta!r}")
+        return cls({n: likelihood_from_dict(n, t, source) for n, t in tables.items()}, dict(meta))
 
     def write_toml(self, path: str | Path) -> Path:
         with atomic_paths(path) as (tmp,):

@@ -139,14 +139,20 @@ def _stale_shapefile(folder: Path) -> Path:
     return path
 
 
-def test_stale_shapefile_index_warns_then_restores_on_a_copy(tmp_path: Path) -> None:
-    """GDAL reads this short record as a missing shape, silently (Swellendam's raises; see test_real_data)."""
+def test_stale_shapefile_index_is_an_error_then_restores_on_a_copy(tmp_path: Path) -> None:
+    """GDAL reads this short record as a missing shape, silently (Swellendam's raises; see test_real_data):
+    an error naming the layer and both ways out, unless the layer allows empty geometries (then a warning)."""
     p = _stale_shapefile(tmp_path)
     before = tree_hashes(tmp_path, "lakes.*")
+    with pytest.raises(LayerError) as info:
+        read_vector(spec(p, name="lakes"), GRID)
+    msg = str(info.value)
+    assert "lakes.shp" in msg and "1 of 3 features have no geometry (FIDs 1)" in msg and "restore_index = true" in msg
+    assert "allow_empty_geometries = true in [layers.lakes]" in msg
     with pytest.warns(LayerWarning) as record:
-        layer = read_vector(spec(p, name="lakes"), GRID)
+        layer = read_vector(spec(p, name="lakes", allow_empty_geometries=True), GRID)
     msg = str(record[0].message)
-    assert "lakes.shp" in msg and "1 of 3 features have no geometry" in msg and "restore_index = true" in msg
+    assert "lakes.shp" in msg and "1 of 3 features have no geometry" in msg and "skipped" in msg
     assert layer.geometries.size == 2
     layer = read_vector(spec(p, name="lakes", restore_index=True), GRID, ["n"])
     np.testing.assert_array_equal(layer.attributes["n"], [5, 40, 7])
