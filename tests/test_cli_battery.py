@@ -194,10 +194,10 @@ def test_outputs_of_one_command_are_committed_together(region: Path, tmp_path: P
 
 def test_build_commits_the_prior_set_and_refuses_a_folder(region: Path, tmp_path: Path, capsys) -> None:
     assert prior_main(["build", str(region / "region.toml"), "-q", "--out", str(tmp_path / "p.tif")]) == 0
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["p.sat.npy", "p.sat2.npy", "p.tif"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["p.qml", "p.sat.npy", "p.sat2.npy", "p.tif"]
     assert prior_main(["build", str(region / "region.toml"), "--out", str(tmp_path)]) == 1
     assert "is a folder" in capsys.readouterr().err
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["p.sat.npy", "p.sat2.npy", "p.tif"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["p.qml", "p.sat.npy", "p.sat2.npy", "p.tif"]
 
 
 @pytest.mark.parametrize("tau", ["-inf", "-1e-3", "-2.5"])

@@ -44,7 +44,7 @@ WORK_BYTES_PER_CELL = 24
 """Peak temporaries while one feature is built (distance transform, DEM and its slope), bytes per cell."""
 PRIOR_BYTES_PER_CELL = 48
 """r, the density and the two float64 summed-area tables (plus float32 copies on writing), bytes per cell."""
-_FEATURE_BYTES = {"mask": 2, "classes": 2, "categories": 4, "distance": 8, "slope": 8, "raster": 8}
+_FEATURE_BYTES = {"mask": 2, "classes": 2, "categories": 4, "distance": 8, "slope": 8, "elevation": 8, "raster": 8}
 """Bytes per cell of each feature type's grid (int16 masks and classes, int32 codes, float64 values)."""
 
 

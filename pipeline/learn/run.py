@@ -17,7 +17,7 @@ import numpy as np
 from sklearn.base import clone
 
 from common.atomic import atomic_paths
-from pipeline.build.region import build_features
+from pipeline.build.region import build_features, unused_features
 from pipeline.config.learn import LearnConfig, load_learn_config
 from pipeline.config.region import RegionConfig
 from pipeline.gis.targets import read_targets
@@ -146,6 +146,20 @@ def prepare_learning(
     config, lc = load_learn_config(region)
     if config.model is None and lc.features is None:
         raise ValueError(f"{config.path}: no [likelihood.*] template and no learn.features; nothing says what to fit")
+    fitted = set(lc.features) if lc.features is not None else set(config.model.terms)
+    if lc.features is None:
+        # Without [learn] features the template's tables say what to fit; a feature with none would be
+        # left out of the fit without a word.
+        unused = unused_features(config, fitted)
+        if unused:
+            raise ValueError(
+                f"{config.path}: [features.{unused[0]}] has no [likelihood.{unused[0]}] table, so learn would not fit it"
+                f"{f' (nor {unused[1:]})' if unused[1:] else ''}: add a table (its form and start values) or list "
+                "the features to fit in [learn] features"
+            )
+    ignored = sorted(set(lc.flexible or ()) - fitted)
+    if ignored:
+        raise ValueError(f"{config.path}: [learn] flexible names {ignored}, which this fit does not include (see [learn] features and the [likelihood.*] tables)")
     pts = read_targets(targets, config.grid, layer, x, y, targets_crs)
     est = PriorEstimator(
         template=config.model, feature_names=lc.features, penalty_sd=lc.penalty_sd, smooth_sd=lc.smooth_sd,

@@ -117,3 +117,35 @@ def test_learn_reports_bad_targets(targets, tmp_path, capsys) -> None:
     err = capsys.readouterr().err
     assert str(bad) in err and "no column 'x'" in err
     assert not (tmp_path / "m.toml").exists()
+
+
+def test_learn_refuses_a_feature_it_would_silently_leave_out(targets, tmp_path, capsys) -> None:
+    """A feature with no [likelihood.*] table (and no [learn] features list) would be dropped from the fit
+    without a word: an error naming it and the two ways out; nothing written."""
+    _, csv, _, _ = targets
+    doc = tomllib.loads(cut_config(tmp_path, {"hybrid": False}).read_text())
+    dropped = next(name for name in doc["likelihood"] if name != "road_distance")
+    del doc["likelihood"][dropped]
+    cfg = write_config(tmp_path / "dropped.toml", doc)
+    out = tmp_path / "model.toml"
+    assert main(["-q", "learn", str(cfg), "--targets", str(csv), "--out", str(out), "--no-cv"]) == 1
+    err = capsys.readouterr().err
+    assert f"[features.{dropped}] has no [likelihood.{dropped}] table" in err and "[learn] features" in err
+    assert not out.exists()
+    # Listing the features to fit is the explicit way to leave one out: then it learns.
+    doc["learn"]["features"] = [n for n in doc["likelihood"]]
+    cfg = write_config(tmp_path / "listed.toml", doc)
+    assert main(["-q", "learn", str(cfg), "--targets", str(csv), "--out", str(out), "--no-cv"]) == 0
+    assert set(LikelihoodModel.read_toml(out).terms) == set(doc["likelihood"])
+
+
+def test_learn_refuses_a_flexible_entry_it_would_ignore(targets, tmp_path, capsys) -> None:
+    _, csv, _, _ = targets
+    doc = tomllib.loads(cut_config(tmp_path, {"hybrid": False}).read_text())
+    doc["learn"]["features"] = ["water"]
+    doc["learn"]["flexible"] = {"road_distance": [0, 50, 100, 200]}
+    cfg = write_config(tmp_path / "flex.toml", doc)
+    out = tmp_path / "model.toml"
+    assert main(["-q", "learn", str(cfg), "--targets", str(csv), "--out", str(out), "--no-cv"]) == 1
+    assert "[learn] flexible names ['road_distance'], which this fit does not include" in capsys.readouterr().err
+    assert not out.exists()

@@ -163,3 +163,11 @@ def test_unused_feature_check_reaches_tiled_builds(tmp_path: Path) -> None:
     with pytest.raises(PriorError, match=r"\[likelihood\.vegetation\]"):
         build_prior_tiled(cfg, tmp_path / "p.tif", None, client=None)
     assert not any(tmp_path.iterdir())
+
+
+def test_every_feature_type_has_a_size() -> None:
+    """The estimate knows each feature type the config accepts (a new type must say its bytes per cell)."""
+    from pipeline.build.region import _FEATURE_BYTES
+    from pipeline.config.region import FEATURE_TYPES
+
+    assert set(_FEATURE_BYTES) == set(FEATURE_TYPES)

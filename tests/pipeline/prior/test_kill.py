@@ -24,8 +24,10 @@ from pipeline.prior.write import sat_paths
 from tests.pipeline.gis_helpers import REGION_TOML
 
 REPO = REGION_TOML.parents[1]
-NAMES = ("prior.tif", "prior.sat.npy", "prior.sat2.npy")
-TEMP = re.compile(r"\.prior\.(tif|sat\.npy|sat2\.npy)\.\d+\.[a-z0-9_]{8}(\.tif|\.npy|\.scratch)")
+NAMES = ("prior.tif", "prior.sat.npy", "prior.sat2.npy", "prior.qml")
+# the writer's temp files, and the staging folder the CLI writes a command's outputs through
+TEMP = re.compile(r"\.prior\.(tif|sat\.npy|sat2\.npy|qml)\.\d+\.[a-z0-9_]{8}(\.tif|\.npy|\.qml|\.scratch)"
+                  r"|\.terrain-stage-\d+-\w+")
 
 
 def _config(folder: Path, rmd: float, small: bool) -> Path:
@@ -51,7 +53,7 @@ def _state(out: Path, old: TerrainPrior, new: TerrainPrior, refs: dict[str, dict
     names = set(os.listdir(out.parent))
     strays = [n for n in names - set(NAMES) if not TEMP.fullmatch(n)]
     assert strays == [], f"not ours: {strays}"
-    for name in set(NAMES[1:]) & names:  # every table on disk is a whole table of one of the builds
+    for name in set(NAMES[1:]) & names:  # every table (and style) on disk is a whole file of one of the builds
         data = (out.parent / name).read_bytes()
         assert data in (refs["old"][name], refs["new"][name]), f"{name}: neither build's"
     if "prior.tif" not in names:
@@ -127,7 +129,7 @@ def _write_and_die(path: str, stop: str) -> None:
 
     import common.atomic
 
-    renames = iter(range(3))
+    renames = iter(range(len(NAMES)))
     real_replace, real_unlink = os.replace, pathlib.Path.unlink
 
     def replace(src, dst):
@@ -147,7 +149,7 @@ def _write_and_die(path: str, stop: str) -> None:
 
 
 @pytest.mark.parametrize(("stop", "want"), [("unlink", "old"), ("rename0", "absent"), ("rename1", "absent"),
-                                            ("rename2", "absent"), ("never", "new")])
+                                            ("rename2", "absent"), ("rename3", "absent"), ("never", "new")])
 def test_killed_between_the_renames(tmp_path: Path, stop: str, want: str) -> None:
     old_dir, new_dir, out = tmp_path / "old", tmp_path / "new", tmp_path / "out" / "prior.tif"
     old, new = _prior(0), _prior(1)
@@ -155,7 +157,8 @@ def test_killed_between_the_renames(tmp_path: Path, stop: str, want: str) -> Non
     new.write(new_dir / "prior.tif")
     old.write(out)
     refs = {k: {n: (tmp_path / k / n).read_bytes() for n in NAMES} for k in ("old", "new")}
-    child = multiprocessing.get_context("fork").Process(target=_write_and_die, args=(str(out), stop))
+    # spawn, not fork: a forked child inherits GDAL's and numba's worker threads' locks and can hang
+    child = multiprocessing.get_context("spawn").Process(target=_write_and_die, args=(str(out), stop))
     child.start()
     child.join()
     assert child.exitcode == (0 if stop == "never" else 9)
