@@ -15,6 +15,7 @@ from tracker.association import DEFAULT_GAMMA, VARIANTS
 from tracker.integrate import METHODS
 from tracker.models.motion import ConstantVelocity, Static
 from tracker.models.sfunc import ExpS, PoissonS
+from tracker.run import ASSOCIATION_METHODS, DEFAULT_SWEEPS
 
 
 def prior_inputs(path: Path) -> dict[str, list[Path]]:
@@ -42,11 +43,14 @@ def cmd_run(args: argparse.Namespace) -> None:
         result = track_files(
             args.prior, args.reports, out.path("--out"), args.variant, s_model, motion, layer=args.layer,
             ellipse_prob=args.ellipse_prob, assignments_csv=out.path("--assignments") if args.assignments else None,
+            method=args.method, sweeps=args.sweeps, samples=args.samples, seed=args.seed, progress=not args.quiet,
             gamma=args.gamma, off_prior=args.off_prior, integrator=partial(integrate_checked, method=args.integrator),
         )
     skipped = int((result.assignments < 0).sum())
-    print(f"{len(result.assignments)} reports -> {result.n_detected} targets ({args.variant}, {s_model}); "
+    print(f"{len(result.assignments)} reports -> {result.n_detected} targets ({args.variant}, {s_model}, {args.method}); "
           f"{skipped} skipped; wrote {args.out}" + (f" and {args.assignments}" if args.assignments else ""))
+    if result.log_posterior is not None:
+        print(f"ln p(partition | reports) + const: greedy {result.greedy_log_posterior:.3f}, batch {result.log_posterior:.3f}")
 
 
 def add_integrator_argument(p: argparse.ArgumentParser) -> None:
@@ -64,6 +68,11 @@ def add_run_parser(sub, quiet: argparse.ArgumentParser) -> None:
     s = p.add_mutually_exclusive_group()
     s.add_argument("--tau", type=float, default=-1.7, help="S(n,k) = exp(-n tau); default -1.7 (the paper's best TT)")
     s.add_argument("--poisson-mu", type=float, help="exact eq. 16 with a Poisson(mu) number of targets instead of tau")
+    p.add_argument("--method", choices=ASSOCIATION_METHODS, default="greedy",
+                   help="greedy (paper 1, in file order; default) or batch (search over partitions from greedy's, docs/batch.md)")
+    p.add_argument("--sweeps", type=int, help=f"batch: annealed Gibbs sweeps (map mode) or burn-in sweeps (with --samples); default {DEFAULT_SWEEPS}")
+    p.add_argument("--samples", type=int, help="batch: sample the posterior for this many sweeps (membership from the samples) instead of the MAP search")
+    p.add_argument("--seed", type=int, help="batch: seed of the chain's random scan order and moves; default 0")
     p.add_argument("--motion", choices=("static", "cv"), default="static", help="static targets or constant velocity")
     p.add_argument("--q", type=float, default=0.1, help="cv: white-noise acceleration density, m^2/s^3")
     p.add_argument("--velocity-std", type=float, default=10.0, help="cv: initial velocity std per axis, m/s")
@@ -71,7 +80,7 @@ def add_run_parser(sub, quiet: argparse.ArgumentParser) -> None:
     p.add_argument("--off-prior", choices=("raise", "skip"), default="raise", help="reports where the prior has no mass")
     add_integrator_argument(p)
     p.add_argument("--ellipse-prob", type=float, default=0.95, help="probability contour drawn as each target's ellipse")
-    p.add_argument("--assignments", type=Path, help="also write report -> hypothesis index as CSV")
+    p.add_argument("--assignments", type=Path, help="also write report -> hypothesis index as CSV (batch: and its membership probability)")
     p.add_argument("--out", type=Path, required=True, help="GeoPackage to write (layers targets, ellipses)")
     p.set_defaults(func=cmd_run)
 

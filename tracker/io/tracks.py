@@ -10,7 +10,9 @@ Both layers carry a default QGIS style in the GeoPackage's ``layer_styles`` tabl
 one): ellipses outlined and unfilled, targets as dots labelled with their report count.
 
 Assignments: CSV with columns ``report`` (0-based row of the reports file) and ``hypothesis`` (index of
-the target it was fused into; -1 skipped).
+the target it was fused into, the ``id`` of its row in the tracks; -1 skipped). The batch method adds
+``membership``: the report's posterior probability of belonging to that target (1 in map mode, empty
+where skipped). Greedy has no posterior, so its file has no such column (it is not a probability 1).
 """
 
 from __future__ import annotations
@@ -140,10 +142,14 @@ def write_tracks(path: str | Path, estimate: Estimate, crs: str | None, ellipse_
     return path
 
 
-def write_assignments(path: str | Path, assignments: np.ndarray) -> Path:
-    """Write the hypothesis index of every report (``assignments`` (K,), -1 skipped) as CSV, atomically."""
+def write_assignments(path: str | Path, assignments: np.ndarray, membership: np.ndarray | None = None) -> Path:
+    """Write the hypothesis index of every report (``assignments`` (K,), -1 skipped) and, if given, its
+    ``membership`` probability (K,) (NaN: empty) as CSV, atomically."""
+    table = {"report": np.arange(len(assignments)), "hypothesis": assignments}
+    if membership is not None:
+        table["membership"] = membership
     with atomic_paths(path) as (tmp,):
-        pd.DataFrame({"report": np.arange(len(assignments)), "hypothesis": assignments}).to_csv(tmp, index=False)
+        pd.DataFrame(table).to_csv(tmp, index=False)
     return Path(path)
 
 
