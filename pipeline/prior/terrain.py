@@ -10,7 +10,10 @@ of the per-cell mass of r (probability) and of r^2 (per m^2). They are memory-ma
 
 from __future__ import annotations
 
+import contextlib
 import json
+import logging
+from collections.abc import Iterator
 from pathlib import Path
 
 import numba as nb
@@ -53,11 +56,29 @@ def _rebuild_hint(path: Path, model: dict) -> str:
     return f"rebuild it with `terrain-prior build {config or 'REGION.toml'} --out {path}`"
 
 
+class _LayoutNote(logging.Filter):
+    """Drops GDAL's note that an edited COG lost its optimised layout: the prior still reads exactly, and
+    :func:`_read_geotiff` checks what it holds, so the note is no news to whoever reads a prior."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return "used to have optimizations in its layout" not in record.getMessage()
+
+
+@contextlib.contextmanager
+def _without_layout_note() -> Iterator[None]:
+    log, note = logging.getLogger("rasterio._env"), _LayoutNote()
+    log.addFilter(note)
+    try:
+        yield
+    finally:
+        log.removeFilter(note)
+
+
 def _read_geotiff(path: Path) -> tuple[Grid, np.ndarray, dict, list[str], str]:
     """Grid, float64 density, model, table digests and rebuild hint of a prior GeoTIFF; PriorError unless it carries a
     prior's tags and a finite, non-negative density that integrates to 1 (within DENSITY_TOL)."""
     try:
-        with rasterio.open(path) as src:
+        with _without_layout_note(), rasterio.open(path) as src:
             tags = src.tags()
             profile = (src.count, src.dtypes[0])
             density = src.read(1).astype(np.float64) if profile == (1, "float32") else None

@@ -37,13 +37,13 @@ def prior_path(tmp_path: Path) -> Path:
 
 
 def _retag(path: Path, **tags: str) -> None:
-    with rasterio.open(path, "r+") as dst:
+    with rasterio.open(path, "r+", IGNORE_COG_LAYOUT_BREAK="YES") as dst:  # tampering with a COG on purpose
         dst.update_tags(**tags)
 
 
 def _rewrite_density(path: Path, change: Callable[[np.ndarray], np.ndarray]) -> None:
     """Replace the density of a prior GeoTIFF, keeping all its tags."""
-    with rasterio.open(path, "r+") as dst:
+    with rasterio.open(path, "r+", IGNORE_COG_LAYOUT_BREAK="YES") as dst:  # tampering with a COG on purpose
         dst.write(change(dst.read(1)).astype(np.float32), 1)
 
 
@@ -258,7 +258,7 @@ def _bad_priors(tmp_path: Path) -> dict[str, Path]:
         elif kind == "mixed":
             shutil.copy(sat_paths(_prior(1).write(tmp_path / "other" / "prior.tif"))[0], sat_paths(path)[0])
         elif kind == "plain":
-            with rasterio.open(path, "r+") as dst:
+            with rasterio.open(path, "r+", IGNORE_COG_LAYOUT_BREAK="YES") as dst:  # tampering with a COG on purpose
                 dst.update_tags(MODEL="{}")
             with rasterio.open(path) as src:
                 data, profile = src.read(1), src.profile
