@@ -39,7 +39,7 @@ prior: setup
 demo: prior
 	$(VENV)/bin/terrain-track simulate --prior $(OUT)/prior.tif --seed 0 --out $(OUT)/reports.csv --truth-out $(OUT)/targets.csv
 	$(VENV)/bin/terrain-track run --prior $(OUT)/prior.tif --reports $(OUT)/reports.csv --variant TT --tau -4.75 --out $(OUT)/tracks.gpkg
-	$(VENV)/bin/terrain-track show --prior $(OUT)/prior.tif --reports $(OUT)/reports.csv --tracks $(OUT)/tracks.gpkg --truth $(OUT)/targets.csv --png $(OUT)/tracks.png --html $(OUT)/tracks.html
+	$(VENV)/bin/terrain-track show --prior $(OUT)/prior.tif --reports $(OUT)/reports.csv --tracks $(OUT)/tracks.gpkg --truth $(OUT)/targets.csv --png $(OUT)/tracks.png --html $(OUT)/tracks.html --vector terrain_data/region.gpkg:roads --vector terrain_data/region.gpkg:lakes=water
 	$(VENV)/bin/terrain-track experiment --prior $(OUT)/prior.tif --datasets 28 --reports 100 --tau -9:3:0.25 --out $(OUT)/experiment
 
 test: setup

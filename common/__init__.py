@@ -24,6 +24,7 @@ _EXPORTS = {
     "LeafletMap": "maps",
     "covariance_popup": "maps",
     "density_map": "maps",
+    "VectorSource": "maps",
 }
 __all__ = sorted(_EXPORTS)
 __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -11,13 +11,18 @@ from __future__ import annotations
 import base64
 import html
 import json
+import logging
 import re
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import branca.colormap
 import folium
 import numpy as np
+import pyogrio
+import pyogrio.errors
+import pyogrio.raw
 import shapely
 from affine import Affine
 from branca.element import Element, MacroElement
@@ -28,11 +33,40 @@ from rasterio.warp import Resampling, calculate_default_transform, reproject, tr
 
 from common.atomic import atomic_paths
 
+log = logging.getLogger(__name__)
+
 ASSETS = Path(__file__).with_name("assets")
 MAX_IMAGE_PX = 2048
 """Longest side (pixels) of a raster overlay; larger rasters are resampled coarser (the file stays small)."""
 RAMP = tuple(branca.colormap.linear.viridis.colors)
 """Colour ramp of raster overlays (viridis, RGBA in 0..1)."""
+VECTOR_COLOURS = {"water": "#1f78b4", "other": "#222222"}
+"""Line colour of a vector file's overlay: water (its name mentions water, a lake, river or sea) or other."""
+WATER_WORDS = ("water", "lake", "river", "sea")
+
+
+@dataclass(frozen=True)
+class VectorSource:
+    """A layer of a vector file to draw: ``path``, ``layer`` (None: the file's only layer) and the
+    overlay's ``name`` (None: the layer's name, else the file's stem)."""
+
+    path: Path
+    layer: str | None = None
+    name: str | None = None
+
+    @classmethod
+    def parse(cls, text: str) -> VectorSource:
+        """``PATH[:LAYER][=NAME]``, e.g. ``region.gpkg:lakes=water`` (ValueError naming ``text`` if a part is empty)."""
+        rest, eq, name = text.rpartition("=") if "=" in text else (text, "", "")
+        path, colon, layer = rest.rpartition(":") if ":" in rest else (rest, "", "")
+        if not path or (colon and not layer) or (eq and not name):
+            raise ValueError(f"{text!r}: expected PATH[:LAYER][=NAME] with no empty part")
+        return cls(Path(path), layer or None, name or None)
+
+    @property
+    def label(self) -> str:
+        """The overlay's name."""
+        return self.name or self.layer or self.path.stem
 
 
 def _leaflet_assets() -> tuple[str, str]:
@@ -81,7 +115,6 @@ class LeafletMap:
     def __init__(self, crs: CRS | str, bounds: Sequence[float], basemap: str | None = None,
                  attribution: str = "basemap"):
         self.crs = CRS.from_user_input(crs)
-        self._to_lonlat = self.crs != CRS.from_epsg(4326)
         west, south, east, north = transform_bounds(self.crs, "EPSG:4326", *bounds)
         self.map = folium.Map(tiles=None, control_scale=True, zoom_snap=0.25)
         # folium links Leaflet, jQuery and Bootstrap from CDNs; the map uses Leaflet only, inlined below
@@ -132,32 +165,73 @@ class LeafletMap:
                                           mercator_project=False, overlay=True).add_to(self.map)
         _Legend(colormap._repr_html_()).add_to(self.map)
 
-    def _geojson(self, geometries: Sequence[shapely.Geometry], properties: Sequence[Mapping[str, str]]) -> dict:
-        """A GeoJSON FeatureCollection (lon/lat) of map-CRS geometries with one properties dict each."""
+    def _geojson(self, geometries: Sequence[shapely.Geometry], properties: Sequence[Mapping[str, str]],
+                 crs: CRS) -> dict:
+        """A GeoJSON FeatureCollection (lon/lat) of ``crs`` geometries with one properties dict each."""
         geoms = np.asarray(geometries, dtype=object)
-        if self._to_lonlat and len(geoms):
-            t = Transformer.from_crs(self.crs, "EPSG:4326", always_xy=True)
+        if crs != CRS.from_epsg(4326) and len(geoms):
+            t = Transformer.from_crs(crs, "EPSG:4326", always_xy=True)
             geoms = shapely.transform(geoms, lambda xy: np.column_stack(t.transform(xy[:, 0], xy[:, 1])))
         features = [{"type": "Feature", "geometry": json.loads(shapely.to_geojson(g)), "properties": dict(p)}
                     for g, p in zip(geoms, properties, strict=True)]
         return {"type": "FeatureCollection", "features": features}
 
     def _layer(self, name: str, geometries: Sequence[shapely.Geometry],
-               popups: Sequence[Mapping[str, str]] | None, **options) -> None:
-        """One folium GeoJson layer of ``geometries`` with an optional popup table per feature."""
+               popups: Sequence[Mapping[str, str]] | None, crs: CRS | str | None = None, **options) -> None:
+        """One folium GeoJson layer of ``geometries`` (in ``crs``, default the map's) with an optional popup
+        table per feature."""
         props = list(popups) if popups is not None else [{} for _ in range(len(geometries))]
-        layer = folium.GeoJson(self._geojson(geometries, props), name=name, **options)
+        src = self.crs if crs is None else CRS.from_user_input(crs)
+        layer = folium.GeoJson(self._geojson(geometries, props, src), name=name, **options)
         if props and props[0]:
             layer.add_child(folium.GeoJsonPopup(fields=list(props[0])))
         layer.add_to(self.map)
 
     def add_shapes(self, name: str, geometries: Sequence[shapely.Geometry], colour: str,
                    popups: Sequence[Mapping[str, str]] | None = None, fill: float = 0.0, weight: float = 1.5,
-                   show: bool = True) -> None:
-        """Lines or polygons (map CRS) as one switchable layer; ``popups``: per geometry a table
-        {label: text} shown on click (all with the same labels)."""
+                   show: bool = True, crs: CRS | str | None = None) -> None:
+        """Lines or polygons (in ``crs``, default the map's) as one switchable layer; ``popups``: per
+        geometry a table {label: text} shown on click (all with the same labels)."""
         style = {"color": colour, "weight": weight, "fillColor": colour, "fillOpacity": fill}
-        self._layer(name, geometries, popups, show=show, style_function=lambda _feature: style)
+        self._layer(name, geometries, popups, crs, show=show, style_function=lambda _feature: style)
+
+    def add_vector_file(self, path: str | Path, layer: str | None = None, name: str | None = None,
+                        colour: str | None = None, fill: float = 0.35, where: str | None = None) -> int:
+        """Draw one layer of a vector file (any CRS GDAL reads, reprojected to lon/lat) as one switchable
+        overlay: the one reader of vector layers for both maps. ``layer``: None for a file's only layer;
+        ``name``: the overlay's (default as :attr:`VectorSource.label`); ``colour``: default by the name
+        (:data:`VECTOR_COLOURS`); ``fill``: polygon fill opacity (lines are never filled); ``where``: an
+        SQL attribute filter. Features without geometry are skipped (logged). Returns the features drawn;
+        a missing file, unknown layer or bad filter is a ValueError naming it."""
+        path = Path(path)
+        where_text = f"{path}" + (f" layer {layer!r}" if layer else "")
+        if not path.exists():
+            raise ValueError(f"{path}: vector file not found")
+        try:
+            available = [str(n) for n in pyogrio.list_layers(path)[:, 0]]
+        except pyogrio.errors.DataSourceError as exc:
+            raise ValueError(f"{path}: not a readable vector file: {exc}") from None
+        if layer is None and len(available) != 1:
+            raise ValueError(f"{path}: the file has layers {available}; name one (PATH:LAYER)")
+        if layer is not None and layer not in available:
+            raise ValueError(f"{path}: no layer {layer!r}; the file has {available}")
+        layer = layer if layer is not None else available[0]
+        try:
+            meta, _, wkb, _ = pyogrio.raw.read(path, layer=layer, where=where, columns=[])
+        except (pyogrio.errors.DataLayerError, pyogrio.errors.FieldError) as exc:
+            raise ValueError(f"{where_text}: cannot read" + (f" with where = {where!r}" if where else "")
+                             + f": {exc}") from None
+        if meta["crs"] is None:
+            raise ValueError(f"{where_text}: the layer has no CRS; cannot place it on the map")
+        geoms = shapely.from_wkb(wkb) if wkb is not None else np.empty(0, dtype=object)
+        keep = ~shapely.is_missing(geoms) & ~shapely.is_empty(geoms)
+        if not keep.all():
+            log.warning("%s: %d of %d features have no geometry; not drawn", where_text, int((~keep).sum()), keep.size)
+        name = name or VectorSource(path, layer).label
+        if colour is None:
+            colour = VECTOR_COLOURS["water" if any(w in name.lower() for w in WATER_WORDS) else "other"]
+        self.add_shapes(name, geoms[keep], colour, fill=fill, crs=meta["crs"])
+        return int(keep.sum())
 
     def add_points(self, name: str, xy: np.ndarray, colour: str,
                    popups: Sequence[Mapping[str, str]] | None = None, radius: float = 4.0) -> None:

@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from common.cli import quiet_parent, run_cli
 from common.outputs import Output, command_outputs, input_files
@@ -16,6 +17,9 @@ from tracker.integrate import METHODS
 from tracker.models.motion import ConstantVelocity, Static
 from tracker.models.sfunc import ExpS, PoissonS
 from tracker.run import ASSOCIATION_METHODS, DEFAULT_SWEEPS
+
+if TYPE_CHECKING:
+    from common.maps import VectorSource
 
 
 def prior_inputs(path: Path) -> dict[str, list[Path]]:
@@ -170,6 +174,7 @@ def cmd_show(args: argparse.Namespace) -> None:
     if not (args.png or args.html):
         raise ValueError("show: give --png, --html or both")
     inputs = prior_inputs(args.prior) | file_inputs(reports=args.reports, tracks=args.tracks, truth=args.truth)
+    inputs |= {f"--vector {v.path}": input_files(v.path) for v in args.vector}
     outputs = [Output("--png", args.png) if args.png else None, Output("--html", args.html) if args.html else None]
     with command_outputs(outputs, inputs) as out:
         prior = TerrainPrior.read(args.prior)
@@ -182,8 +187,18 @@ def cmd_show(args: argparse.Namespace) -> None:
             from tracker.study.maps import tracks_map  # folium loads only for --html
 
             tracks_map(prior, reports.means, reports.covs, means, covs, counts, targets=targets,
-                       basemap=args.basemap).save(out.path("--html"), title="reports and estimated targets")
+                       basemap=args.basemap, vectors=args.vector).save(out.path("--html"), title="reports and estimated targets")
     print("wrote " + ", ".join(str(o.path) for o in outputs if o is not None))
+
+
+def vector_source(text: str) -> VectorSource:
+    """The argparse type of ``--vector``: :meth:`common.maps.VectorSource.parse` (a bad value is a usage error)."""
+    from common.maps import VectorSource  # folium loads only when a map is drawn
+
+    try:
+        return VectorSource.parse(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def add_show_parser(sub, quiet: argparse.ArgumentParser) -> None:
@@ -195,6 +210,9 @@ def add_show_parser(sub, quiet: argparse.ArgumentParser) -> None:
     p.add_argument("--png", type=Path, help="PNG to write")
     p.add_argument("--html", type=Path, help="interactive map to write (one HTML file, opens offline)")
     p.add_argument("--basemap", metavar="URL", help="--html: XYZ tile URL template drawn under the layers (default none: no network)")
+    p.add_argument("--vector", metavar="PATH[:LAYER][=NAME]", type=vector_source, action="append", default=[],
+                   help="--html: also draw this layer of a vector file (e.g. region.gpkg:lakes=water; LAYER may be "
+                        "left out for a file of one layer, NAME defaults to LAYER), each its own overlay; repeatable")
     p.set_defaults(func=cmd_show)
 
 

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from common.maps import LeafletMap, density_map
 from pipeline.config.region import RegionConfig
-from pipeline.gis.layers import read_vector
+from pipeline.gis.layers import _open_source
 from pipeline.prior.terrain import TerrainPrior
 
 LAYER_COLOURS = {"distance": "#222222", "water": "#1f78b4", "mask": "#8c564b"}
@@ -16,7 +16,7 @@ LAYER_COLOURS = {"distance": "#222222", "water": "#1f78b4", "mask": "#8c564b"}
 
 def add_region_layers(m: LeafletMap, config: RegionConfig) -> list[str]:
     """Draw each vector layer that feeds a distance feature (roads) or a mask feature (water, obstacles),
-    named by its ``[layers.<name>]`` key; returns the layer names drawn."""
+    named by its ``[layers.<name>]`` key and filtered by its ``where``; returns the layer names drawn."""
     drawn: list[str] = []
     for feature in config.features.values():
         if feature.type not in ("distance", "mask"):
@@ -25,8 +25,10 @@ def add_region_layers(m: LeafletMap, config: RegionConfig) -> list[str]:
         for name in feature.layers:
             if name in drawn:
                 continue
-            geoms = read_vector(config.layers[name], config.grid).geometries
-            m.add_shapes(name, geoms, colour, fill=0.35 if feature.type == "mask" else 0.0)
+            spec = config.layers[name]
+            with _open_source(spec) as path:  # a restore_index shapefile is read from its repaired copy
+                m.add_vector_file(path, spec.layer, name, colour, fill=0.35 if feature.type == "mask" else 0.0,
+                                  where=spec.where)
             drawn.append(name)
     return drawn
 

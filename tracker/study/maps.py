@@ -3,9 +3,11 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
-from common.maps import LeafletMap, covariance_popup, density_map
+from common.maps import LeafletMap, VectorSource, covariance_popup, density_map
 from pipeline.prior import TerrainPrior
 from tracker.io.tracks import ellipse_polygons
 
@@ -23,13 +25,17 @@ def tracks_map(
     assoc_probs: np.ndarray | None = None,
     ellipse_prob: float = 0.95,
     basemap: str | None = None,
+    vectors: Sequence[VectorSource] = (),
 ) -> LeafletMap:
     """The prior with the reports' and the estimated targets' ``ellipse_prob`` ellipses (means (N, 2) m and
     covariances (N, 2, 2) m² in the prior's CRS) and, for simulations, the true targets (M, 2) m.
+    ``vectors``: layers of vector files (roads, water) drawn over the prior, each its own overlay.
 
     Popups: covariance, reports fused into each target (``track_counts``), and each target's posterior
     association probability when the associator provides one (``assoc_probs`` (Q,))."""
     m = density_map(prior.density, prior.grid.transform, prior.grid.crs, basemap=basemap)
+    for v in vectors:
+        m.add_vector_file(v.path, v.layer, v.label)
     report_means, track_means = np.reshape(report_means, (-1, 2)), np.reshape(track_means, (-1, 2))
     report_covs, track_covs = np.reshape(report_covs, (-1, 2, 2)), np.reshape(track_covs, (-1, 2, 2))
     pct = f"{ellipse_prob:.0%}"

@@ -148,3 +148,16 @@ def test_the_probe_sees_errors_and_network_requests(prior_html, tmp_path):
     got = probe(broken, tmp_path)
     assert any("undefinedName" in e for e in got["errors"])
     assert any("cdn.example.invalid" in e for e in got["errors"] + got["resources"])
+
+
+def test_a_layers_where_filter_picks_the_features_drawn(region, tmp_path):
+    toml, prior = region
+    filtered = tmp_path / "region.toml"
+    filtered.write_text(toml.read_text().replace('layer = "roads"\n', 'layer = "roads"\nwhere = "id = 1"\n'))
+    out = tmp_path / "map.html"
+    assert main(["-q", "show", str(prior), "--html", str(out), "--region", str(filtered)]) == 0
+    _, roads = geojson_layers(out)
+    to_ll = Transformer.from_crs(CRS, "EPSG:4326", always_xy=True)
+    assert len(roads["features"]) == 1
+    np.testing.assert_allclose(roads["features"][0]["geometry"]["coordinates"],
+                               np.column_stack(to_ll.transform(*np.array(ROADS[1]).T)), atol=1e-9)
