@@ -31,7 +31,7 @@ from tracker.integrate.terraces import (
     near_grid,
     pixel_gaussians,
 )
-from tracker.integrate.tiny import TINY, is_tiny, tiny_integrals
+from tracker.integrate.tiny import TINY, few_cell_integrals, is_few_cells, is_tiny, tiny_integrals
 from tracker.types.reports import MAX_CONDITION, check_gaussians
 
 __all__ = [
@@ -185,6 +185,13 @@ def _integrate_rest(prior, uc, vc, cuu, cuv, cvv, squared, method, n_terraces, n
             result[near] = values
             handled[near] = counts > 0
         rest = np.flatnonzero(~handled)
+    if rest.size:
+        # Gaussians of a few cells: exact per-cell masses, which terraces cannot follow on a rough field.
+        few = rest[is_few_cells(cuu[rest], cuv[rest], cvv[rest])]
+        if few.size:
+            field = np.asarray(prior.density, dtype=np.float64)
+            result[few] = few_cell_integrals(field * field if squared else field, *(a[few] for a in (uc, vc, cuu, cuv, cvv)))
+            rest = np.setdiff1d(rest, few, assume_unique=True)
     if rest.size:
         result[rest] = integrate_terraces(
             prior, *(a[rest] for a in (uc, vc, cuu, cuv, cvv)), squared, n_terraces, n_strips, mass, shear, scheme

@@ -25,11 +25,17 @@ import math
 import numba as nb
 import numpy as np
 
-__all__ = ["TINY", "bvn_cdf", "is_tiny", "tiny_integrals"]
+__all__ = ["FEW", "TINY", "bvn_cdf", "few_cell_integrals", "is_few_cells", "is_tiny", "tiny_integrals"]
 
 TINY = 0.05
 """Largest σ (cells, along the Gaussian's major axis) integrated in closed form: 8.5 σ < 0.5 cell, so
 the 2 × 2 cells around the nearest corner hold all of the mass that float64 can see."""
+
+FEW = 2.0
+"""Largest σ (cells, major axis) that the terraces hand to :func:`few_cell_integrals`: a Gaussian this
+small spans too few cells for concentric terraces to follow a field that jumps from cell to cell (4 %
+off for r² at σ = 1 cell on a rough field), and its ±8.5 σ window is at most 35 × 35 cells."""
+_WINDOW = 8.5  # σ each side: Φ(-8.5) ≈ 1e-17 of the mass lies beyond
 
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(12)
 _MAX_PANELS = 64  # the last panel ends 2^-63 rad from π/2: what lies beyond is below 1e-19
@@ -119,4 +125,41 @@ def tiny_integrals(field, uc, vc, cuu, cuv, cvv):
             + _cell(field, i - 1, j) * bvn_cdf(x, -y, -rho)
             + _cell(field, i, j) * bvn_cdf(-x, -y, rho)
         )
+    return out
+
+
+@nb.njit(cache=True)
+def is_few_cells(cuu, cuv, cvv):
+    """True for Gaussians (pixel units) whose larger σ is at most :data:`FEW` cells."""
+    out = np.empty(cuu.shape[0], dtype=np.bool_)
+    for n in range(cuu.shape[0]):
+        half = 0.5 * (cuu[n] - cvv[n])
+        out[n] = 0.5 * (cuu[n] + cvv[n]) + math.sqrt(half * half + cuv[n] * cuv[n]) <= FEW * FEW
+    return out
+
+
+@nb.njit(cache=True)
+def few_cell_integrals(field, uc, vc, cuu, cuv, cvv):
+    """∫ G r, exactly, for Gaussians of a few cells (:func:`is_few_cells`): Σ over the cells of the ±8.5 σ
+    window of r(cell) times the Gaussian's mass in it, each mass a rectangle of Φ₂ (its four corners)."""
+    out = np.empty(uc.shape[0])
+    for n in range(uc.shape[0]):
+        su, sv, rho = _corr(cuu[n], cuv[n], cvv[n])
+        i0 = int(math.floor(uc[n] - _WINDOW * su))
+        i1 = int(math.floor(uc[n] + _WINDOW * su))
+        j0 = int(math.floor(vc[n] - _WINDOW * sv))
+        j1 = int(math.floor(vc[n] + _WINDOW * sv))
+        # Φ₂ at the window's cell corners, then each cell's mass by inclusion-exclusion.
+        corners = np.empty((j1 - j0 + 2, i1 - i0 + 2))
+        for b in range(j1 - j0 + 2):
+            y = (j0 + b - vc[n]) / sv
+            for a in range(i1 - i0 + 2):
+                corners[b, a] = bvn_cdf((i0 + a - uc[n]) / su, y, rho)
+        total = 0.0
+        for b in range(j1 - j0 + 1):
+            for a in range(i1 - i0 + 1):
+                value = _cell(field, i0 + a, j0 + b)
+                if value != 0.0:
+                    total += value * (corners[b + 1, a + 1] - corners[b, a + 1] - corners[b + 1, a] + corners[b, a])
+        out[n] = total
     return out
