@@ -35,14 +35,17 @@ _LOG_2PI = math.log(2.0 * math.pi)
 
 @njit(cache=True, inline="always")
 def _pos_at(Hm, Hc, Ht, h, t, motion, q):
-    """Position mean and covariance (x, y, c00, c01, c11) of hypothesis h predicted to time t
-    (:func:`tracker.models.motion.cv_cov_entry`)."""
+    """Position mean and covariance (x, y, c00, c01, c11) of hypothesis h predicted to time t (CV: entries
+    of the one formula, :func:`tracker.models.motion.cv_cov_entry`; the tracker's states are 2-D, d = 2)."""
     if motion != MOTION_CV:
         return Hm[h, 0], Hm[h, 1], Hc[h, 0, 0], Hc[h, 0, 1], Hc[h, 1, 1]
     dt = t - Ht[h]
-    d = Hm.shape[1] // 2
-    return (cv_mean_entry(Hm, h, 0, dt, d), cv_mean_entry(Hm, h, 1, dt, d), cv_cov_entry(Hc, h, 0, 0, dt, q, d),
-            cv_cov_entry(Hc, h, 0, 1, dt, q, d), cv_cov_entry(Hc, h, 1, 1, dt, q, d))
+    x = cv_mean_entry(Hm, h, 0, dt, 2)
+    y = cv_mean_entry(Hm, h, 1, dt, 2)
+    c00 = cv_cov_entry(Hc, h, 0, 0, dt, q, 2)
+    c01 = cv_cov_entry(Hc, h, 0, 1, dt, q, 2)
+    c11 = cv_cov_entry(Hc, h, 1, 1, dt, q, 2)
+    return x, y, c00, c01, c11
 
 
 @njit(cache=True, inline="always")
