@@ -5,6 +5,7 @@ from common.exports import lazy_exports
 
 _EXPORTS = {
     "atomic_paths": "atomic",
+    "pid_alive": "atomic",
     "EXIT_ERROR": "cli",
     "EXIT_OK": "cli",
     "EXIT_USAGE": "cli",

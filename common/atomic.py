@@ -27,7 +27,7 @@ def _prefix(final: Path) -> str:
     return f".{final.name}.{os.getpid()}."
 
 
-def _pid_alive(pid: int) -> bool:
+def pid_alive(pid: int) -> bool:
     """Whether process ``pid`` exists on this machine (a process of another user counts as alive)."""
     if pid == os.getpid():
         return True
@@ -58,7 +58,7 @@ def remove_stale_temps(final: str | os.PathLike) -> list[Path]:
         return removed
     for entry in entries:
         m = pattern.fullmatch(entry.name)
-        if m is None or _pid_alive(int(m.group(1))):
+        if m is None or pid_alive(int(m.group(1))):
             continue
         path = Path(entry.path)
         with contextlib.suppress(FileNotFoundError):  # another run may be cleaning up too

@@ -21,6 +21,8 @@ from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
+from common.atomic import pid_alive
+
 STAGE_PREFIX = ".terrain-stage-"
 """Name prefix of staging folders: ``.terrain-stage-<pid>-<random>``."""
 SHAPEFILE_SIDECARS = (".shp", ".shx", ".dbf", ".prj", ".cpg", ".qix", ".sbn", ".sbx")
@@ -102,13 +104,6 @@ def _check(outputs: list[Output], inputs: _Inputs) -> None:
             raise OutputError(f"{o.label} {o.path}: is a folder; give a file path (inside it, say)")
 
 
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # someone else's live process
-        return True
     return True
 
 
@@ -116,7 +111,7 @@ def remove_stale_stages(folder: Path) -> None:
     """Remove the staging folders in ``folder`` left by killed runs (whose process is gone)."""
     for d in folder.glob(STAGE_PREFIX + "*"):
         pid = d.name[len(STAGE_PREFIX):].split("-", 1)[0]
-        if pid.isdigit() and not _pid_alive(int(pid)):
+        if pid.isdigit() and not pid_alive(int(pid)):
             shutil.rmtree(d, ignore_errors=True)
 
 
