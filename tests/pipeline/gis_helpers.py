@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -57,3 +58,12 @@ def cell_boxes(transform: Affine, shape: tuple[int, int]) -> np.ndarray:
     x0, y0 = transform @ (cols, rows)
     x1, y1 = transform @ (cols + 1, rows + 1)
     return shapely.box(np.minimum(x0, x1), np.minimum(y0, y1), np.maximum(x0, x1), np.maximum(y0, y1))
+
+
+def region_doc(**region) -> dict:
+    """The bundled region config with absolute layer paths and ``region`` keys replaced."""
+    doc = tomllib.loads(REGION_TOML.read_text())
+    for layer in doc["layers"].values():
+        layer["path"] = str((REGION_TOML.parent / layer["path"]).resolve())
+    doc["region"].update(region)
+    return doc

@@ -6,7 +6,6 @@ from __future__ import annotations
 import subprocess
 import sys
 import time
-import tomllib
 from pathlib import Path
 
 import pytest
@@ -24,16 +23,7 @@ from pipeline.cli import main
 from pipeline.config.region import load_config, parse_config
 from pipeline.prior.likelihood import LikelihoodModel
 from pipeline.prior.terrain import PriorError
-from tests.pipeline.gis_helpers import REGION_TOML, REPO, write_config
-
-
-def region_doc(**region) -> dict:
-    """The bundled region config with absolute layer paths and ``region`` keys replaced."""
-    doc = tomllib.loads(REGION_TOML.read_text())
-    for layer in doc["layers"].values():
-        layer["path"] = str((REGION_TOML.parent / layer["path"]).resolve())
-    doc["region"].update(region)
-    return doc
+from tests.pipeline.gis_helpers import REGION_TOML, REPO, region_doc, write_config
 
 
 @pytest.mark.parametrize("side_m", [2e7, 1e6])  # 1e6 x 1e6 and 50k x 50k cells of 20 m

@@ -4,7 +4,6 @@ API and as one ``error:`` line from the CLI with exit 1 and no traceback."""
 from __future__ import annotations
 
 import math
-import tomllib
 import warnings
 from pathlib import Path
 
@@ -16,15 +15,7 @@ from pipeline.cli import main
 from pipeline.config.region import ConfigError, ConfigWarning, load_config, parse_config
 from pipeline.gis.grid import Grid, GridError
 from pipeline.prior.likelihood import LikelihoodError, LikelihoodModel
-from tests.pipeline.gis_helpers import REGION_TOML, write_config
-
-
-def region_doc(**region) -> dict:
-    doc = tomllib.loads(REGION_TOML.read_text())
-    for layer in doc["layers"].values():
-        layer["path"] = str((REGION_TOML.parent / layer["path"]).resolve())
-    doc["region"].update(region)
-    return doc
+from tests.pipeline.gis_helpers import REGION_TOML, region_doc, write_config
 
 
 def cli_error(capsys, *argv: str) -> str:
