@@ -2,7 +2,8 @@
 
 - the import graph between subpackages has no cycle;
 - ``common`` imports neither the pipeline nor the tracker; ``pipeline`` never imports ``tracker``;
-- ``tracker`` reaches the pipeline only through ``pipeline.prior``;
+- ``tracker`` reaches the pipeline only through ``pipeline.prior``, and its study layer (``tracker.study``,
+  which joins learning and tracking) also through ``pipeline.learn``;
 - nothing outside ``tests/`` imports ``tests``;
 - every subpackage (and ``common``) declares ``__all__`` in its ``__init__.py`` and each listed name is
   bound there, or exported lazily from a submodule that defines it.
@@ -153,16 +154,54 @@ def test_pipeline_never_imports_tracker():
     assert _offences("pipeline", lambda n: n.split(".")[0] != "tracker") == []
 
 
-def test_tracker_reaches_the_pipeline_only_through_pipeline_prior():
-    def allowed(name: str) -> bool:
-        if name.split(".")[0] != "pipeline":
-            return True
-        # ``from pipeline.prior import TerrainPrior`` records pipeline.prior and pipeline.prior.TerrainPrior.
-        return name == "pipeline.prior" or (
-            name.startswith("pipeline.prior.") and _project_module(name) == "pipeline.prior"
-        )
+STUDY = "tracker.study"
+"""The one tracker layer that may also import ``pipeline.learn``: it joins learning and tracking (issue 16)."""
 
-    assert _offences("tracker", allowed) == []
+
+def _in_package(name: str, package: str) -> bool:
+    """``name`` is ``package`` or one of its modules or names (``from pipeline.prior import TerrainPrior`` records
+    pipeline.prior and pipeline.prior.TerrainPrior)."""
+    target = _project_module(name)
+    return name == package or (name.startswith(package + ".") and target is not None
+                               and (target == package or target.startswith(package + ".")))
+
+
+def _tracker_may_import(module: str, name: str) -> bool:
+    """Whether tracker ``module`` may import ``name``: anything outside the pipeline, ``pipeline.prior``, and in
+    the study layer also ``pipeline.learn``."""
+    if name.split(".")[0] != "pipeline":
+        return True
+    if _in_package(name, "pipeline.prior") and _project_module(name) == "pipeline.prior":
+        return True
+    return (module == STUDY or module.startswith(STUDY + ".")) and _in_package(name, "pipeline.learn")
+
+
+def test_tracker_reaches_the_pipeline_only_through_pipeline_prior():
+    """Everything in the tracker but the study layer imports only ``pipeline.prior``; the study layer also
+    ``pipeline.learn``, nothing else of the pipeline."""
+    bad = sorted(
+        f"{m} imports {name}"
+        for m, names in IMPORTS.items() if m == "tracker" or m.startswith("tracker.")
+        for name in names if not _tracker_may_import(m, name)
+    )
+    assert bad == []
+
+
+def test_the_tracker_rule_refuses_in_both_directions():
+    """The study layer may import pipeline.learn and the rest of the tracker may not; neither may import other
+    pipeline packages or pipeline.prior's submodules."""
+    assert _tracker_may_import("tracker.study.heldout", "pipeline.learn")
+    assert _tracker_may_import("tracker.study.heldout", "pipeline.learn.PriorEstimator")
+    assert _tracker_may_import("tracker.study", "pipeline.learn.run")
+    assert _tracker_may_import("tracker.gating.gate", "pipeline.prior.TerrainPrior")
+    assert not _tracker_may_import("tracker.association.greedy", "pipeline.learn")
+    assert not _tracker_may_import("tracker.cli", "pipeline.learn.PriorEstimator")
+    assert not _tracker_may_import("tracker.studyx", "pipeline.learn")
+    assert not _tracker_may_import("tracker.study.heldout", "pipeline.gis.targets")
+    assert not _tracker_may_import("tracker.study.heldout", "pipeline.build.region")
+    assert not _tracker_may_import("tracker.study.heldout", "pipeline.prior.terrain")
+    # The permission is used (the rule is not vacuous): the study layer does import pipeline.learn.
+    assert any(_in_package(n, "pipeline.learn") for m, names in IMPORTS.items() if m.startswith(STUDY) for n in names)
 
 
 def _outside_tests_sources():

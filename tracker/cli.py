@@ -89,6 +89,12 @@ def add_run_parser(sub, quiet: argparse.ArgumentParser) -> None:
     p.set_defaults(func=cmd_run)
 
 
+def add_targets_file_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--targets-file", type=Path, help="real target locations: a vector file (points, or polygon centroids) "
+                   "or a CSV with x, y columns; each data set picks --targets of those in its window (seeded)")
+    p.add_argument("--layer", help="layer of a multi-layer --targets-file")
+
+
 def cmd_experiment(args: argparse.Namespace) -> None:
     from tracker.study.experiment import ExperimentConfig, parse_taus, run_and_write
     from tracker.study.simulate import AirborneSensor
@@ -98,9 +104,11 @@ def cmd_experiment(args: argparse.Namespace) -> None:
         variants=tuple(args.variants.split(",")), n_targets=args.targets, base_seed=args.seed,
         sensor=AirborneSensor(azimuth_std_rad=args.azimuth_std_mrad / 1000.0, range_std_m=args.range_std_m),
         poisson_mu=args.poisson_mu, integrator=args.integrator,
+        targets_file=str(args.targets_file) if args.targets_file else None, targets_layer=args.layer,
     )
     title = args.title or ""
-    with command_outputs([Output("--out", args.out, folder=True)], prior_inputs(args.prior)) as out:
+    inputs = prior_inputs(args.prior) | file_inputs(targets_file=args.targets_file)
+    with command_outputs([Output("--out", args.out, folder=True)], inputs) as out:
         if args.scheduler:
             from common.dask import get_client  # dask loads only for cluster runs
             from tracker.study.sweep import run_and_write_dask
@@ -126,7 +134,9 @@ def add_experiment_parser(sub, quiet: argparse.ArgumentParser) -> None:
     p.add_argument("--reports", type=int, default=100, help="reports per data set; default 100")
     p.add_argument("--tau", default="-3:3:0.25", help="start:stop:step (stop included) or a comma list; default -3:3:0.25")
     p.add_argument("--variants", default="UU,UT,TT", help="comma list of UU, UT, TT")
-    p.add_argument("--targets", type=int, default=200, help="targets drawn over the 14 km region before the window; default 200")
+    p.add_argument("--targets", type=int, default=200, help="targets drawn over the 14 km region before the window "
+                   "(with --targets-file: picked among the file's locations in the window); default 200")
+    add_targets_file_arguments(p)
     p.add_argument("--seed", type=int, default=0, help="seed of the first data set")
     p.add_argument("--poisson-mu", type=float, help="also run every variant with the exact eq. 16 S under Poisson(mu)")
     p.add_argument("--azimuth-std-mrad", type=float, default=2.0, help="sensor azimuth standard deviation, mrad")
@@ -139,14 +149,72 @@ def add_experiment_parser(sub, quiet: argparse.ArgumentParser) -> None:
     p.set_defaults(func=cmd_experiment)
 
 
+def cmd_heldout(args: argparse.Namespace) -> None:
+    from tracker.study.experiment import parse_taus
+    from tracker.study.heldout import HeldoutConfig, run_and_write_heldout
+    from tracker.study.simulate import AirborneSensor
+
+    try:
+        alphas = tuple(float(a) for a in args.alphas.split(","))
+    except ValueError:
+        raise ValueError(f"--alphas {args.alphas!r}: expected a comma list of numbers >= 0") from None
+    config = HeldoutConfig(
+        region=str(args.region), targets_file=str(args.targets_file), targets_layer=args.layer, block_m=args.block_m,
+        n_folds=args.folds, n_datasets=args.datasets, n_targets=args.targets, n_reports=args.reports,
+        taus=parse_taus(args.tau), alphas=alphas, hybrid=not args.no_hybrid, handset=not args.no_handset,
+        other_region=not args.no_other, exact_s=not args.no_exact_s, base_seed=args.seed,
+        sensor=AirborneSensor(azimuth_std_rad=args.azimuth_std_mrad / 1000.0, range_std_m=args.range_std_m),
+        integrator=args.integrator,
+    )
+    inputs = file_inputs(region=args.region, targets_file=args.targets_file)
+    with command_outputs([Output("--out", args.out, folder=True)], inputs) as out:
+        summary, paths = run_and_write_heldout(config, out.path("--out"), workers=args.workers, progress=not args.quiet)
+        paths = {k: out.final(v) for k, v in paths.items()}
+    for key, entry in summary["table"]["gospa_m"].items():
+        pur = summary["table"]["purity"][key]
+        print(f"{key}: P(better) GOSPA {entry['t']:.3f}, purity {pur['t']:.3f} (t form, best tau)")
+    print(f"{summary['n_datasets']} data sets in {len(summary['blocks'])} held-out blocks; wrote {paths['table']}, {paths['summary']}")
+
+
+def add_heldout_parser(sub, quiet: argparse.ArgumentParser) -> None:
+    p = sub.add_parser("heldout", parents=[quiet], help="learn the prior from targets in training blocks, track real "
+                       "targets in held-out blocks, compare priors (docs/experiment.md)")
+    p.add_argument("--region", type=Path, required=True, help="region TOML (features, hand-set tables, [learn])")
+    p.add_argument("--targets-file", type=Path, required=True, help="past target locations: vector file (points or polygon centroids) or CSV x, y")
+    p.add_argument("--layer", help="layer of a multi-layer --targets-file")
+    p.add_argument("--targets", type=int, default=50, help="targets per data set, picked in a held-out block; default 50")
+    p.add_argument("--datasets", type=int, default=28, help="data sets (held-out blocks in turn); default 28")
+    p.add_argument("--reports", type=int, default=100, help="reports per data set; default 100")
+    p.add_argument("--tau", default="-3:3:0.25", help="start:stop:step (stop included) or a comma list; default -3:3:0.25")
+    p.add_argument("--block-m", type=float, default=2000.0, help="side of the spatial blocks = data-set windows, m; default 2000")
+    p.add_argument("--folds", type=int, default=5, help="block folds; each held-out block's prior is learned from the other folds; default 5")
+    p.add_argument("--alphas", default="0,0.5,1,1.5,2", help="exponents of the misspecified priors r^alpha; default 0,0.5,1,1.5,2")
+    p.add_argument("--no-hybrid", action="store_true", help="leave out the learned hybrid prior")
+    p.add_argument("--no-handset", action="store_true", help="leave out the config's hand-set tables")
+    p.add_argument("--no-other", action="store_true", help="leave out the model learned on another (the furthest) fold")
+    p.add_argument("--no-exact-s", action="store_true", help="leave out the exact eq. 16 S under Poisson(--targets)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the first data set")
+    p.add_argument("--azimuth-std-mrad", type=float, default=2.0, help="sensor azimuth standard deviation, mrad")
+    p.add_argument("--range-std-m", type=float, default=12.0, help="sensor slant-range standard deviation, m")
+    add_integrator_argument(p)
+    p.add_argument("--workers", type=int, help="local worker processes (default: all cores; 1 runs inline)")
+    p.add_argument("--out", type=Path, required=True, help="output folder (results, summary.json, table.md, alpha.png, priors/)")
+    p.set_defaults(func=cmd_heldout)
+
+
 def cmd_simulate(args: argparse.Namespace) -> None:
     from pipeline.prior import TerrainPrior
     from tracker.io.reports import write_reports, write_targets
-    from tracker.study.simulate import simulate
+    from tracker.study.simulate import file_targets, simulate, simulate_points
 
     outputs = [Output("--out", args.out), Output("--truth-out", args.truth_out) if args.truth_out else None]
-    with command_outputs(outputs, prior_inputs(args.prior)) as out:
-        scenario = simulate(TerrainPrior.read(args.prior), args.seed, args.targets, args.reports)
+    with command_outputs(outputs, prior_inputs(args.prior) | file_inputs(targets_file=args.targets_file)) as out:
+        prior = TerrainPrior.read(args.prior)
+        if args.targets_file:
+            points = file_targets(args.targets_file, args.layer, prior.grid)
+            scenario = simulate_points(prior, points, args.seed, args.targets, args.reports, source=str(args.targets_file))
+        else:
+            scenario = simulate(prior, args.seed, args.targets, args.reports)
         write_reports(out.path("--out"), scenario.reports)
         if args.truth_out:
             write_targets(out.path("--truth-out"), scenario.targets)
@@ -158,7 +226,9 @@ def add_simulate_parser(sub, quiet: argparse.ArgumentParser) -> None:
     p = sub.add_parser("simulate", parents=[quiet], help="simulate one data set of the paper's experiment (targets from the prior, airborne sensor)")
     p.add_argument("--prior", type=Path, required=True, help="prior GeoTIFF (terrain-prior build)")
     p.add_argument("--seed", type=int, default=0, help="random seed")
-    p.add_argument("--targets", type=int, default=200, help="targets drawn over the central 14 km (kept: the central half)")
+    p.add_argument("--targets", type=int, default=200, help="targets drawn over the central 14 km (kept: the central half); "
+                   "with --targets-file: picked among the file's locations in the central half")
+    add_targets_file_arguments(p)
     p.add_argument("--reports", type=int, default=100, help="reports, targets picked with replacement")
     p.add_argument("--truth-out", type=Path, help="also write the kept true targets as CSV (truth, x, y)")
     p.add_argument("--out", type=Path, required=True, help="reports CSV to write")
@@ -238,7 +308,7 @@ def make_parser() -> argparse.ArgumentParser:
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     sub = parser.add_subparsers(dest="command", required=True)
     quiet = quiet_parent()
-    for add in (add_run_parser, add_experiment_parser, add_simulate_parser, add_show_parser, add_calibrate_parser):
+    for add in (add_run_parser, add_experiment_parser, add_heldout_parser, add_simulate_parser, add_show_parser, add_calibrate_parser):
         add(sub, quiet)
     return parser
 

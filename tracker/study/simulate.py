@@ -1,5 +1,6 @@
-"""Scenario generator for the paper's experiment (paper 1, section 6): targets drawn from the prior,
-the central-window selection, and reports from an airborne sensor platform.
+"""Scenario generator for the paper's experiment (paper 1, section 6): targets drawn from the prior
+(or picked among real locations read from a vector file, :func:`simulate_points`), the central-window
+selection, and reports from an airborne sensor platform.
 
 Units: metres in the prior's CRS, seconds, radians. Everything is seeded (``numpy.random.default_rng``).
 
@@ -24,10 +25,15 @@ V is evaluated at the true target position and reported without error, as in the
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from pipeline.prior import TerrainPrior
+
+if TYPE_CHECKING:
+    from pipeline.gis.grid import Grid
 from tracker.types.reports import Reports
 
 Bounds = tuple[float, float, float, float]  # (xmin, ymin, xmax, ymax), metres
@@ -129,16 +135,52 @@ def simulate(
     then ``n_reports`` reports of targets picked uniformly with replacement through ``sensor``."""
     if n_targets < 1 or n_reports < 1:
         raise ValueError(f"n_targets and n_reports must be >= 1, got {n_targets} and {n_reports}")
-    sensor = sensor or AirborneSensor()
     rng = np.random.default_rng(seed)
     region, keep = central_windows(prior, region_m, keep_fraction)
     drawn = prior.sample(n_targets, rng, region)
-    inside = (
-        (drawn[:, 0] >= keep[0]) & (drawn[:, 0] < keep[2]) & (drawn[:, 1] >= keep[1]) & (drawn[:, 1] < keep[3])
-    )
-    targets = drawn[inside]
+    targets = drawn[_inside(drawn, keep)]
     if not targets.shape[0]:
         raise ValueError(f"seed {seed}: none of the {n_targets} targets fell in the keep window {keep}; raise n_targets")
+    return _observe(targets, rng, n_reports, sensor or AirborneSensor(), region, keep, seed)
+
+
+def simulate_points(
+    prior: TerrainPrior,
+    points: np.ndarray,
+    seed: int,
+    n_targets: int = 200,
+    n_reports: int = 100,
+    region_m: float | None = 14000.0,
+    keep_fraction: float = 0.5,
+    sensor: AirborneSensor | None = None,
+    source: str = "targets file",
+) -> Scenario:
+    """A data set on real locations: ``n_targets`` of ``points`` (N, 2) in metres that lie in the keep
+    window, picked without replacement (all of them when fewer), then reports as :func:`simulate`.
+    ``source`` names the points in the error raised when the window holds none."""
+    if n_targets < 1 or n_reports < 1:
+        raise ValueError(f"n_targets and n_reports must be >= 1, got {n_targets} and {n_reports}")
+    rng = np.random.default_rng(seed)
+    region, keep = central_windows(prior, region_m, keep_fraction)
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    candidates = points[_inside(points, keep)]
+    if not len(candidates):
+        raise ValueError(f"{source}: none of its {len(points)} locations lies in the window {tuple(round(v, 1) for v in keep)} m")
+    pick = rng.choice(len(candidates), size=min(n_targets, len(candidates)), replace=False)
+    return _observe(candidates[np.sort(pick)], rng, n_reports, sensor or AirborneSensor(), region, keep, seed)
+
+
+def _inside(points: np.ndarray, window: Bounds) -> np.ndarray:
+    """Mask of points (N, 2) in the half-open window [xmin, xmax) x [ymin, ymax)."""
+    x, y = points[:, 0], points[:, 1]
+    return (x >= window[0]) & (x < window[2]) & (y >= window[1]) & (y < window[3])
+
+
+def _observe(
+    targets: np.ndarray, rng: np.random.Generator, n_reports: int, sensor: AirborneSensor, region: Bounds, keep: Bounds,
+    seed: int,
+) -> Scenario:
+    """``n_reports`` reports of ``targets`` picked uniformly with replacement, through ``sensor`` on a leg past ``keep``."""
     truth = rng.integers(0, targets.shape[0], size=n_reports)
     times = np.arange(n_reports) * sensor.report_interval_s
     centre = np.array([0.5 * (keep[0] + keep[2]), 0.5 * (keep[1] + keep[3])])
@@ -148,3 +190,22 @@ def simulate(
     means = targets[truth] + np.einsum("kij,kj->ki", chol, rng.standard_normal((n_reports, 2)))
     reports = Reports.create(means, covs, times, truth)
     return Scenario(targets, reports, platform, region, keep, int(seed))
+
+
+_POINTS: dict[tuple, np.ndarray] = {}  # per process: (file version, layer, grid) -> points
+
+
+def file_targets(path: str | Path, layer: str | None, grid: Grid) -> np.ndarray:
+    """Target locations (N, 2) in metres in ``grid``'s CRS from a vector file (points, or polygon and
+    line centroids) or a CSV with x, y columns, read once per process and file version by
+    :func:`pipeline.learn.read_targets` (its errors name the file and layer)."""
+    path = Path(path)
+    key = (str(path.resolve()), path.stat().st_mtime_ns if path.exists() else 0, layer, str(grid.crs),
+           tuple(grid.transform)[:6], grid.width, grid.height)
+    if key not in _POINTS:
+        from pipeline.learn import read_targets  # scikit-learn loads only for file targets
+
+        pts = read_targets(path, grid, layer)
+        pts.setflags(write=False)
+        _POINTS[key] = pts
+    return _POINTS[key]

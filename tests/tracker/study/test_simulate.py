@@ -140,3 +140,55 @@ def test_swellendam_scenario(swellendam) -> None:
     assert (prior.density_at(t[:, 0], t[:, 1]) > 0).all()
     assert ((t[:, 0] >= keep[0]) & (t[:, 0] < keep[2]) & (t[:, 1] >= keep[1]) & (t[:, 1] < keep[3])).all()
     assert len(sc.reports) == 100 and sc.n_detected <= len(t)
+
+
+# --- real target locations (issue 16) ---------------------------------------------------------
+
+
+def _points_prior() -> TerrainPrior:
+    return TerrainPrior.uniform(Grid(CRS, Affine(20.0, 0.0, 0.0, 0.0, -20.0, 8000.0), 400, 400))  # 8 km square
+
+
+def test_simulate_points_picks_distinct_locations_in_the_window() -> None:
+    from tracker.study.simulate import simulate_points
+
+    prior = _points_prior()
+    rng = np.random.default_rng(3)
+    points = rng.uniform(0, 8000, size=(500, 2))
+    sc = simulate_points(prior, points, seed=7, n_targets=30, n_reports=60, region_m=None)
+    _, keep = central_windows(prior, None, 0.5)
+    inside = (points[:, 0] >= keep[0]) & (points[:, 0] < keep[2]) & (points[:, 1] >= keep[1]) & (points[:, 1] < keep[3])
+    assert sc.keep == keep and len(sc.targets) == 30
+    # Every target is one of the file's locations inside the window, none twice.
+    matches = (sc.targets[:, None, :] == points[inside][None, :, :]).all(axis=2)
+    assert (matches.sum(axis=1) == 1).all() and len(np.unique(sc.targets, axis=0)) == 30
+    assert sc.reports.truth.min() >= 0 and sc.reports.truth.max() < 30 and len(sc.reports) == 60
+    # Seeded: the same seed gives the same data set, another seed another one.
+    again = simulate_points(prior, points, seed=7, n_targets=30, n_reports=60, region_m=None)
+    np.testing.assert_array_equal(again.targets, sc.targets)
+    np.testing.assert_array_equal(again.reports.means, sc.reports.means)
+    other = simulate_points(prior, points, seed=8, n_targets=30, n_reports=60, region_m=None)
+    assert not np.array_equal(other.targets, sc.targets)
+
+
+def test_simulate_points_takes_all_when_fewer_and_names_an_empty_window() -> None:
+    from tracker.study.simulate import simulate_points
+
+    prior = _points_prior()
+    points = np.array([[4000.0, 4000.0], [3000.0, 5000.0], [100.0, 100.0]])  # two inside the central half
+    sc = simulate_points(prior, points, seed=0, n_targets=10, n_reports=5, region_m=None)
+    np.testing.assert_array_equal(sc.targets, points[:2])
+    with pytest.raises(ValueError, match=r"buildings.gpkg: none of its 1 locations lies in the window"):
+        simulate_points(prior, points[2:], seed=0, n_targets=10, region_m=None, source="buildings.gpkg")
+
+
+def test_simulate_points_reports_follow_the_sensor_model() -> None:
+    """The reports of real locations are the sensor's: mean error zero, whitened by V it is standard normal."""
+    from tracker.study.simulate import simulate_points
+
+    prior = _points_prior()
+    points = np.random.default_rng(1).uniform(2000, 6000, size=(50, 2))
+    sc = simulate_points(prior, points, seed=2, n_targets=50, n_reports=4000, region_m=None)
+    err = sc.reports.means - sc.targets[sc.reports.truth]
+    white = np.einsum("kij,kj->ki", np.linalg.inv(np.linalg.cholesky(sc.reports.covs)), err)
+    assert stats.kstest(white.ravel(), "norm").pvalue > 1e-3
