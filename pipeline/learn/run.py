@@ -168,6 +168,26 @@ def prepare_learning(
     return config, lc, pts, est
 
 
+def fit_hybrid(est: PriorEstimator, pts: np.ndarray, lc: LearnConfig) -> PriorEstimator:
+    """The hybrid of the fitted terrain estimator ``est``, refitted on points (N, 2) in metres: its KDE
+    bandwidth chosen by block CV (``lc``'s candidates and blocks) on the points ``est`` used."""
+    used = pts[est.used_mask_]
+    stack = est.features
+    bws = np.asarray(lc.bandwidths_m) if lc.bandwidths_m else default_bandwidths(stack)
+    bw = fit_kde_cv(used, block_ids(used, stack.grid.bounds[:2], lc.block_size_m), bws).bandwidth
+    return clone(est).set_params(spatial_bandwidth=float(bw), spatial_block=lc.block_size_m, spatial_folds=lc.folds).fit(pts)
+
+
+def learning_inputs(
+    region: str | Path, targets: str | Path, layer: str | None = None, progress: bool = True,
+) -> tuple[RegionConfig, LearnConfig, np.ndarray, PriorEstimator]:
+    """:func:`prepare_learning` with the region's feature stack built and set on the (unfitted)
+    estimator: ready to fit on any subset of the points, a fold's for instance."""
+    config, lc, pts, est = prepare_learning(region, targets, layer)
+    est.set_params(features=build_features(config, progress))
+    return config, lc, pts, est
+
+
 def learn_region(
     region: str | Path,
     targets: str | Path,
@@ -187,13 +207,7 @@ def learn_region(
     stack = build_features(config, progress)
     est.set_params(features=stack).fit(pts)
     naive = clone(est).set_params(method="naive").fit(pts)
-    hyb = None
-    if lc.hybrid:
-        used = pts[est.used_mask_]
-        bws = np.asarray(lc.bandwidths_m) if lc.bandwidths_m else default_bandwidths(stack)
-        bw = fit_kde_cv(used, block_ids(used, config.grid.bounds[:2], lc.block_size_m), bws).bandwidth
-        hyb = clone(est).set_params(spatial_bandwidth=float(bw), spatial_block=lc.block_size_m,
-                                    spatial_folds=lc.folds).fit(pts)
+    hyb = fit_hybrid(est, pts, lc) if lc.hybrid else None
     result = None
     if cv:
         models = ("uniform", "naive", "terrain", "kde", "hybrid") if lc.hybrid else ("uniform", "naive", "terrain", "kde")
