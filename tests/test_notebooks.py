@@ -1,7 +1,9 @@
 """Every notebook in notebooks/ runs in fast mode and is committed without outputs; notebooks.run works.
 
 A notebook too slow for the default suite even in fast mode sets, in its metadata,
-``"notebooks_run": {"fast_test": false}``; its execution test is then marked slow.
+``"notebooks_run": {"fast_test": false}``; its execution test is then marked slow. A notebook on real data
+names the fixture of its folder (``"notebooks_run": {"real_data": "swellendam"}``): without the data its
+execution test skips with the reason, and fails when CI=true.
 """
 
 from __future__ import annotations
@@ -34,7 +36,10 @@ def _params(nb: nbformat.NotebookNode) -> list[nbformat.NotebookNode]:
     "path",
     [pytest.param(p, id=p.stem, marks=[pytest.mark.slow] if _is_slow(p) else []) for p in NOTEBOOKS],
 )
-def test_notebook_runs_in_fast_mode(path: Path, tmp_path: Path):
+def test_notebook_runs_in_fast_mode(path: Path, tmp_path: Path, request: pytest.FixtureRequest):
+    needs = nbformat.read(path, as_version=4).metadata.get("notebooks_run", {}).get("real_data")
+    if needs:
+        request.getfixturevalue(needs)  # skips without the real data (fails when CI=true): tests/conftest.py
     before = hashlib.sha256(path.read_bytes()).hexdigest()
     run.execute(path, {"FAST": True, "FIG_DIR": str(tmp_path)}, timeout=300)
     assert hashlib.sha256(path.read_bytes()).hexdigest() == before, "committed notebook was rewritten"

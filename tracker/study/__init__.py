@@ -1,5 +1,6 @@
-"""Studies of the tracker: simulated scenes, metrics (Score eq. 18, GOSPA, OSPA, purity), Appendix B
-comparisons, the paper's experiment (local or on Dask), regimes, the 1-D example (:mod:`tracker.study.oned`,
+"""Studies of the tracker: simulated scenes (targets from the prior or real locations), metrics (Score eq. 18,
+GOSPA, OSPA, purity), Appendix B comparisons, the paper's experiment (local or on Dask), learn-here-track-there
+on held-out real targets (:mod:`tracker.study.heldout`, the one tracker layer that imports ``pipeline.learn``), regimes, the 1-D example (:mod:`tracker.study.oned`,
 imported as a module) and their figures. Names load on first use: matplotlib, pandas and dask only when asked."""
 
 from common.exports import lazy_exports
@@ -18,6 +19,15 @@ _EXPORTS = {
     "summarise": "experiment",
     "write_outputs": "experiment",
     "run_and_write": "experiment",
+    "HeldoutConfig": "heldout",
+    "alpha_figure": "heldout",
+    "comparison_markdown": "heldout",
+    "prepare": "heldout",
+    "run_heldout": "heldout",
+    "summarise_heldout": "heldout",
+    "write_heldout": "heldout",
+    "run_and_write_heldout": "heldout",
+    "regime_table": "heldout",
     "ScoreGram": "metrics",
     "posterior_means": "metrics",
     "mixture_weights": "metrics",
@@ -43,6 +53,8 @@ _EXPORTS = {
     "Scenario": "simulate",
     "central_windows": "simulate",
     "simulate": "simulate",
+    "simulate_points": "simulate",
+    "file_targets": "simulate",
     "run_experiment_dask": "sweep",
     "run_and_write_dask": "sweep",
 }

@@ -135,6 +135,8 @@ class CachedIntegrator:
         means = np.asarray(means, dtype=np.float64)
         covs = np.asarray(covs, dtype=np.float64)
         n = means.shape[0]
+        if n == 0:  # e.g. the posterior means of a run whose every report fell off the prior
+            return np.empty(0)
         table = self.table2 if squared else self.table
         blob = np.concatenate([means.reshape(n, -1), covs.reshape(n, -1)], axis=1).tobytes()
         width = len(blob) // n if n else 0

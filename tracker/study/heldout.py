@@ -260,6 +260,12 @@ def _exact(results: pd.DataFrame, label: str, column: str) -> np.ndarray:
     return METRICS[column] * r[column].to_numpy()[:, None]
 
 
+def _p(a: np.ndarray, b: np.ndarray, form: str) -> float | None:
+    """:func:`~tracker.study.compare.compare`, None when a metric is undefined on some data set (an RMS error
+    without any estimate within the cut-off)."""
+    return compare(a, b, form) if np.isfinite(a).all() and np.isfinite(b).all() else None
+
+
 def summarise_heldout(results: pd.DataFrame, config: HeldoutConfig, prepared: Prepared | None = None) -> dict:
     """Per label and metric the best τ and its mean; P(TT beats UU / UT) in normal and t forms, each at its
     best τ and with the exact S; the α sweep against UU and the largest misspecification TT still wins at."""
@@ -284,9 +290,9 @@ def summarise_heldout(results: pd.DataFrame, config: HeldoutConfig, prepared: Pr
             if m == "score" and a not in LEARNED:
                 continue
             key = f"{a} vs {b}"
-            entry = {form: compare(_matrix(results, a, m), _matrix(results, b, m), form) for form in ("normal", "t")}
+            entry = {form: _p(_matrix(results, a, m), _matrix(results, b, m), form) for form in ("normal", "t")}
             if exact:
-                entry |= {f"{form}_exact_s": compare(_exact(results, a, m), _exact(results, b, m), form) for form in ("normal", "t")}
+                entry |= {f"{form}_exact_s": _p(_exact(results, a, m), _exact(results, b, m), form) for form in ("normal", "t")}
             table.setdefault(m, {})[key] = entry
     sweep = {}
     for a in config.alphas:
@@ -400,3 +406,31 @@ def run_and_write_heldout(config: HeldoutConfig, out_dir: str | os.PathLike, wor
     results = run_heldout(config, prepared, workers, progress)
     summary = summarise_heldout(results, config, prepared)
     return summary, write_heldout(results, summary, out)
+
+
+def regime_table(config: HeldoutConfig, prepared: Prepared, n_targets: Sequence[int], azimuth_mrad: Sequence[float],
+                 workers: int | None = None, progress: bool = True) -> pd.DataFrame:
+    """Where the learned prior pays off: per target count (targets per held-out block, i.e. density) and sensor
+    azimuth noise (mrad), UU, UT and TT with the learned prior on ``config.n_datasets`` data sets; one row
+    with the mean GOSPA and purity of each at its best τ and P(TT beats UU), t form, on each metric.
+    Blocks with fewer locations than the target count are left out (counted in ``blocks``)."""
+    rows = []
+    learned_only = {name: {"learned": paths["learned"]} for name, paths in prepared.priors.items()}
+    for n in n_targets:
+        blocks = [b for b in prepared.blocks if b.n_points >= n]
+        if not blocks:
+            continue
+        for az in azimuth_mrad:
+            cfg = dataclasses.replace(config, n_targets=int(n), exact_s=False,
+                                      sensor=dataclasses.replace(config.sensor, azimuth_std_rad=az / 1000.0))
+            sub = dataclasses.replace(prepared, blocks=blocks, priors=learned_only)
+            res = run_heldout(cfg, sub, workers, progress)
+            row = {"n_targets": int(n), "azimuth_mrad": float(az), "blocks": len(blocks), "n_datasets": cfg.n_datasets,
+                   "density_per_km2": float(n / (config.block_m / 1000.0) ** 2)}
+            for m in HEADLINE:
+                for lab in LEARNED:
+                    s = _matrix(res, lab, m)
+                    row[f"{lab}_{m}"] = float(METRICS[m] * s.mean(axis=0).min())
+                row[f"p_tt_beats_uu_{m}"] = compare(_matrix(res, "TT", m), _matrix(res, "UU", m), "t")
+            rows.append(row)
+    return pd.DataFrame(rows)
