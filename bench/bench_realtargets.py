@@ -2,7 +2,7 @@
 (features, one terrain fit per fold with held-out blocks, the priors cut around the held-out blocks)
 and 28 data sets × 100 reports × UU/UT/TT × 25 τ on 2 workers (goal: under 2 minutes on 2 cores).
 
-Quick: 6 data sets × 9 τ values. Needs ../shared/real_data/swellendam (raises FileNotFoundError without).
+Quick: 6 data sets × 13 τ values. Needs ../shared/real_data/swellendam (raises FileNotFoundError without).
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ GOAL_S = 120.0
 def _config(quick: bool) -> HeldoutConfig:
     return HeldoutConfig(
         str(REGION), str(TARGETS), "buildings", n_datasets=6 if quick else 28, n_reports=100,
-        taus=parse_taus("-3:3:0.75" if quick else "-3:3:0.25"), alphas=(1.0,), hybrid=False, handset=False,
+        taus=parse_taus("-9:3:1" if quick else "-9:3:0.25"), alphas=(1.0,), hybrid=False, handset=False,
         other_region=False, exact_s=False,
     )
 

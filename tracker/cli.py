@@ -185,7 +185,7 @@ def add_heldout_parser(sub, quiet: argparse.ArgumentParser) -> None:
     p.add_argument("--targets", type=int, default=50, help="targets per data set, picked in a held-out block; default 50")
     p.add_argument("--datasets", type=int, default=28, help="data sets (held-out blocks in turn); default 28")
     p.add_argument("--reports", type=int, default=100, help="reports per data set; default 100")
-    p.add_argument("--tau", default="-3:3:0.25", help="start:stop:step (stop included) or a comma list; default -3:3:0.25")
+    p.add_argument("--tau", default="-9:3:0.25", help="start:stop:step (stop included) or a comma list; default -9:3:0.25 (wider than the paper's: dense sets want tau < -3)")
     p.add_argument("--block-m", type=float, default=2000.0, help="side of the spatial blocks = data-set windows, m; default 2000")
     p.add_argument("--folds", type=int, default=5, help="block folds; each held-out block's prior is learned from the other folds; default 5")
     p.add_argument("--alphas", default="0,0.5,1,1.5,2", help="exponents of the misspecified priors r^alpha; default 0,0.5,1,1.5,2")
