@@ -19,7 +19,8 @@ region) and renormalised there: the tracker's search area.
 Metrics are against the real positions: GOSPA, OSPA, association purity, |N̂_D − N_D| and the RMS
 error of the posterior means. Score (eq. 18) is against the perfect association under the prior
 the row tracked with, so only the learned-prior rows (UU, UT, TT) share one reference: it is a
-proxy (the real targets' prior is unknown) and compared only among them.
+proxy (the real targets' prior is unknown) and compared only among them. Comparisons (Appendix B) pair each label at its own best τ:
+by the metric's mean, except purity and the RMS error, read at the best-GOSPA τ (:data:`TAU_BY`).
 """
 
 from __future__ import annotations
@@ -38,7 +39,7 @@ from tqdm.auto import tqdm
 
 from common.atomic import atomic_paths
 from pipeline.prior import TerrainPrior
-from tracker.study.compare import best_tau_index, compare
+from tracker.study.compare import best_tau_index, prob_better
 from tracker.study.experiment import ExperimentConfig, map_local, parse_taus, run_dataset
 from tracker.study.simulate import AirborneSensor
 
@@ -48,6 +49,10 @@ LEARNED = ("UU", "UT", "TT")
 METRICS = {"gospa_m": 1.0, "purity": -1.0, "ospa_m": 1.0, "nd_abs_error": 1.0, "rms_error_m": 1.0, "score": 1.0}
 """Compared metrics and their sign: +1 lower is better, -1 higher is better (purity)."""
 HEADLINE = ("gospa_m", "purity")
+TAU_BY = {"purity": "gospa_m", "rms_error_m": "gospa_m"}
+"""Metrics read at the τ that is best for another: purity is 1 when every report starts its own target (τ
+very negative) and the RMS error is smallest with few, well-fed tracks, so both are read at the label's
+best-GOSPA τ (its operating point); every other metric at its own best τ."""
 
 
 @dataclass(frozen=True)
@@ -261,10 +266,16 @@ def _exact(results: pd.DataFrame, label: str, column: str) -> np.ndarray:
     return METRICS[column] * r[column].to_numpy()[:, None]
 
 
+def _at_best(results: pd.DataFrame, label: str, metric: str) -> tuple[np.ndarray, int]:
+    """(data sets,) of one label's signed ``metric`` at its best τ (chosen by :data:`TAU_BY`), and that τ's index."""
+    b = best_tau_index(_matrix(results, label, TAU_BY.get(metric, metric)))
+    return _matrix(results, label, metric)[:, b], b
+
+
 def _p(a: np.ndarray, b: np.ndarray, form: str) -> float | None:
-    """:func:`~tracker.study.compare.compare`, None when a metric is undefined on some data set (an RMS error
-    without any estimate within the cut-off)."""
-    return compare(a, b, form) if np.isfinite(a).all() and np.isfinite(b).all() else None
+    """P(a better than b) from paired signed values (Appendix B, :func:`~tracker.study.compare.prob_better`);
+    None when a metric is undefined on some data set (an RMS error without any estimate within the cut-off)."""
+    return prob_better(a - b, form) if np.isfinite(a).all() and np.isfinite(b).all() else None
 
 
 def summarise_heldout(results: pd.DataFrame, config: HeldoutConfig, prepared: Prepared | None = None) -> dict:
@@ -280,9 +291,9 @@ def summarise_heldout(results: pd.DataFrame, config: HeldoutConfig, prepared: Pr
             if m == "score" and lab not in LEARNED:
                 continue
             s = _matrix(results, lab, m)
-            b = best_tau_index(s)
-            per[lab][m] = {"best_tau": float(taus[b]), "mean_at_best_tau": float(sign * s[:, b].mean()),
-                           "mean_by_tau": (sign * s.mean(axis=0)).tolist()}
+            at, b = _at_best(results, lab, m)
+            per[lab][m] = {"best_tau": float(taus[b]), "tau_chosen_by": TAU_BY.get(m, m),
+                           "mean_at_best_tau": float(sign * at.mean()), "mean_by_tau": (sign * s.mean(axis=0)).tolist()}
             if exact:
                 per[lab][m]["mean_exact_s"] = float(sign * _exact(results, lab, m).mean())
     table: dict = {}
@@ -291,9 +302,10 @@ def summarise_heldout(results: pd.DataFrame, config: HeldoutConfig, prepared: Pr
             if m == "score" and a not in LEARNED:
                 continue
             key = f"{a} vs {b}"
-            entry = {form: _p(_matrix(results, a, m), _matrix(results, b, m), form) for form in ("normal", "t")}
+            entry = {form: _p(_at_best(results, a, m)[0], _at_best(results, b, m)[0], form) for form in ("normal", "t")}
             if exact:
-                entry |= {f"{form}_exact_s": _p(_exact(results, a, m), _exact(results, b, m), form) for form in ("normal", "t")}
+                entry |= {f"{form}_exact_s": _p(_exact(results, a, m)[:, 0], _exact(results, b, m)[:, 0], form)
+                          for form in ("normal", "t")}
             table.setdefault(m, {})[key] = entry
     sweep = {}
     for a in config.alphas:
@@ -430,8 +442,7 @@ def regime_table(config: HeldoutConfig, prepared: Prepared, n_targets: Sequence[
                    "density_per_km2": float(n / (config.block_m / 1000.0) ** 2)}
             for m in HEADLINE:
                 for lab in LEARNED:
-                    s = _matrix(res, lab, m)
-                    row[f"{lab}_{m}"] = float(METRICS[m] * s.mean(axis=0).min())
-                row[f"p_tt_beats_uu_{m}"] = compare(_matrix(res, "TT", m), _matrix(res, "UU", m), "t")
+                    row[f"{lab}_{m}"] = float(METRICS[m] * _at_best(res, lab, m)[0].mean())
+                row[f"p_tt_beats_uu_{m}"] = _p(_at_best(res, "TT", m)[0], _at_best(res, "UU", m)[0], "t")
             rows.append(row)
     return pd.DataFrame(rows)
