@@ -18,6 +18,7 @@ _EXPORTS = {
     "score_matrix": "experiment",
     "summarise": "experiment",
     "write_outputs": "experiment",
+    "write_results": "experiment",
     "run_and_write": "experiment",
     "HeldoutConfig": "heldout",
     "alpha_figure": "heldout",

@@ -365,19 +365,24 @@ def summarise(results: pd.DataFrame, config: ExperimentConfig) -> dict:
     }
 
 
-def write_outputs(results: pd.DataFrame, summary: dict, out_dir: str | os.PathLike, title: str = "") -> dict[str, str]:
-    """Results table (Parquet, CSV if pyarrow is missing), summary JSON, Table 1 Markdown and figures."""
+def write_results(results: pd.DataFrame, out_dir: str | os.PathLike) -> str:
+    """``results.parquet`` in ``out_dir`` (created), or ``results.csv`` without pyarrow; returns its path."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    paths = {}
     try:
         with atomic_paths(out / "results.parquet") as (tmp,):
             results.to_parquet(tmp, index=False)
-        paths["results"] = str(out / "results.parquet")
+        return str(out / "results.parquet")
     except ImportError:
         with atomic_paths(out / "results.csv") as (tmp,):
             results.to_csv(tmp, index=False)
-        paths["results"] = str(out / "results.csv")
+        return str(out / "results.csv")
+
+
+def write_outputs(results: pd.DataFrame, summary: dict, out_dir: str | os.PathLike, title: str = "") -> dict[str, str]:
+    """Results table (Parquet, CSV if pyarrow is missing), summary JSON, Table 1 Markdown and figures."""
+    out = Path(out_dir)
+    paths = {"results": write_results(results, out)}
     with atomic_paths(out / "summary.json") as (tmp,):
         tmp.write_text(json.dumps(summary, indent=1))
     paths["summary"] = str(out / "summary.json")

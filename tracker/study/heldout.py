@@ -40,7 +40,13 @@ from tqdm.auto import tqdm
 from common.atomic import atomic_paths
 from pipeline.prior import TerrainPrior
 from tracker.study.compare import best_tau_index, prob_better
-from tracker.study.experiment import ExperimentConfig, map_local, parse_taus, run_dataset
+from tracker.study.experiment import (
+    ExperimentConfig,
+    map_local,
+    parse_taus,
+    run_dataset,
+    write_results,
+)
 from tracker.study.simulate import AirborneSensor
 
 ALPHAS = (0.0, 0.5, 1.0, 1.5, 2.0)
@@ -389,16 +395,7 @@ def alpha_figure(summary: dict, path: str | os.PathLike) -> Path:
 def write_heldout(results: pd.DataFrame, summary: dict, out_dir: str | os.PathLike) -> dict[str, str]:
     """results.parquet (CSV without pyarrow), summary.json, table.md and alpha.png in ``out_dir``."""
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    paths = {}
-    try:
-        with atomic_paths(out / "results.parquet") as (tmp,):
-            results.to_parquet(tmp, index=False)
-        paths["results"] = str(out / "results.parquet")
-    except ImportError:
-        with atomic_paths(out / "results.csv") as (tmp,):
-            results.to_csv(tmp, index=False)
-        paths["results"] = str(out / "results.csv")
+    paths = {"results": write_results(results, out)}
     with atomic_paths(out / "summary.json") as (tmp,):
         tmp.write_text(json.dumps(summary, indent=1, default=float))
     paths["summary"] = str(out / "summary.json")

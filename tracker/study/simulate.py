@@ -133,10 +133,7 @@ def simulate(
 ) -> Scenario:
     """The paper's data set: ``n_targets`` from r over the region, keep those in the central window,
     then ``n_reports`` reports of targets picked uniformly with replacement through ``sensor``."""
-    if n_targets < 1 or n_reports < 1:
-        raise ValueError(f"n_targets and n_reports must be >= 1, got {n_targets} and {n_reports}")
-    rng = np.random.default_rng(seed)
-    region, keep = central_windows(prior, region_m, keep_fraction)
+    rng, region, keep = _start(prior, seed, n_targets, n_reports, region_m, keep_fraction)
     drawn = prior.sample(n_targets, rng, region)
     targets = drawn[_inside(drawn, keep)]
     if not targets.shape[0]:
@@ -158,16 +155,21 @@ def simulate_points(
     """A data set on real locations: ``n_targets`` of ``points`` (N, 2) in metres that lie in the keep
     window, picked without replacement (all of them when fewer), then reports as :func:`simulate`.
     ``source`` names the points in the error raised when the window holds none."""
-    if n_targets < 1 or n_reports < 1:
-        raise ValueError(f"n_targets and n_reports must be >= 1, got {n_targets} and {n_reports}")
-    rng = np.random.default_rng(seed)
-    region, keep = central_windows(prior, region_m, keep_fraction)
+    rng, region, keep = _start(prior, seed, n_targets, n_reports, region_m, keep_fraction)
     points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
     candidates = points[_inside(points, keep)]
     if not len(candidates):
         raise ValueError(f"{source}: none of its {len(points)} locations lies in the window {tuple(round(v, 1) for v in keep)} m")
     pick = rng.choice(len(candidates), size=min(n_targets, len(candidates)), replace=False)
     return _observe(candidates[np.sort(pick)], rng, n_reports, sensor or AirborneSensor(), region, keep, seed)
+
+
+def _start(prior: TerrainPrior, seed: int, n_targets: int, n_reports: int, region_m: float | None,
+           keep_fraction: float) -> tuple[np.random.Generator, Bounds, Bounds]:
+    """The checked counts' data set generator, sampling region and keep window."""
+    if n_targets < 1 or n_reports < 1:
+        raise ValueError(f"n_targets and n_reports must be >= 1, got {n_targets} and {n_reports}")
+    return np.random.default_rng(seed), *central_windows(prior, region_m, keep_fraction)
 
 
 def _inside(points: np.ndarray, window: Bounds) -> np.ndarray:
