@@ -70,4 +70,11 @@ def run(quick: bool = False) -> dict:
         "note": "one setting of terrain-track heldout without the extra priors (hybrid, hand-set, r^alpha, other "
                 "fold); timed on a shared machine, load average beside it",
         "rows": int(len(results)),
+        "table": [
+            {"part": "learning pass: features + 5 fold fits + cut priors (with the child's start-up)", "seconds": t_learn_wall},
+            {"part": f"tracking: {config.n_datasets} data sets x {config.n_reports} reports x UU/UT/TT x {len(config.taus)} tau, 2 workers",
+             "seconds": t_track},
+            {"part": "one full setting", "seconds": total, "goal_seconds": GOAL_S,
+             "meets_goal": bool(total < GOAL_S) if not quick else None},
+        ],
     }
