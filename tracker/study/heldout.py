@@ -382,7 +382,7 @@ def alpha_figure(summary: dict, path: str | os.PathLike) -> Path:
                 ax.plot(float(a), sweep[a][m]["mean"], "k*", ms=10)
         ax.set_xlabel("α (1 = learned)")
         ax.set_ylabel(unit)
-        ax.set_title(f"{m} at the best τ (★: beats UU, P ≥ .95)", fontsize=9)
+        ax.set_title(f"{m} at the {'best-GOSPA' if m in TAU_BY else 'best'} τ (★: beats UU, P ≥ .95)", fontsize=9)
         ax.legend(fontsize=8)
     fig.tight_layout()
     path = Path(path)
