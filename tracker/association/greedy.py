@@ -374,7 +374,8 @@ class Tracker:
             need = self._needs_integral(log_g - log_c, blk[3][rep])
         self.stats_["integrals"] += int(need.sum()) + (h.size if isinstance(self.motion, ConstantVelocity) else 0)
         log_i = np.zeros(h.size)
-        log_i[need] = _log(self.integrator(self.prior, post_m[need, :2], np.ascontiguousarray(post_c[need, :2, :2])))
+        if need.any():  # a refresh often needs none: skip the integrator's per-call cost
+            log_i[need] = _log(self.integrator(self.prior, post_m[need, :2], np.ascontiguousarray(post_c[need, :2, :2])))
         score = np.full(h.size, -np.inf)
         ok = need & np.isfinite(log_i)
         score[ok] = log_g[ok] + log_i[ok] - log_c[ok]

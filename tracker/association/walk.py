@@ -506,6 +506,13 @@ def grid_gate(z, V, gamma, Hm, Hc, hgrid):
 
 
 @njit(cache=True)
+def _candidate_buffers(cap, D):
+    """Room for ``cap`` candidates of a report: hypothesis, score, posterior mean and covariance, ln c, index."""
+    return (np.empty(cap, np.int64), np.empty(cap), np.empty((cap, D)), np.empty((cap, D, D)), np.empty(cap),
+            np.arange(cap))
+
+
+@njit(cache=True)
 def walk_sequential(blk, hyp, istate, fstate, cfg, hgrid):
     """UU/UT, static: the block's reports decided one by one against the current hypotheses, each gated
     with the hypotheses' grid, which is updated after every decision. This is the sequential algorithm
@@ -514,13 +521,7 @@ def walk_sequential(blk, hyp, istate, fstate, cfg, hgrid):
     z, V, log_unseen, assign = blk[0], blk[1], blk[3], blk[6]
     Hm, Hc = hyp[0], hyp[1]
     D = Hm.shape[1]
-    cap = 64
-    c_h = np.empty(cap, np.int64)
-    c_score = np.empty(cap)
-    c_mean = np.empty((cap, D))
-    c_cov = np.empty((cap, D, D))
-    c_logc = np.empty(cap)
-    idx = np.arange(cap)
+    c_h, c_score, c_mean, c_cov, c_logc, idx = _candidate_buffers(64, D)
     pm = np.empty(2)
     pc = np.empty((2, 2))
     one = np.empty(1, np.int64)
@@ -530,14 +531,8 @@ def walk_sequential(blk, hyp, istate, fstate, cfg, hgrid):
         check = True
         while True:
             nc = _grid_query(j, z, V, gamma, Hm, Hc, hgrid, c_h)
-            if nc > cap:
-                cap = 2 * nc
-                c_h = np.empty(cap, np.int64)
-                c_score = np.empty(cap)
-                c_mean = np.empty((cap, D))
-                c_cov = np.empty((cap, D, D))
-                c_logc = np.empty(cap)
-                idx = np.arange(cap)
+            if nc > c_h.shape[0]:
+                c_h, c_score, c_mean, c_cov, c_logc, idx = _candidate_buffers(2 * nc, D)
                 _grid_query(j, z, V, gamma, Hm, Hc, hgrid, c_h)
             for i in range(nc):
                 c_score[i] = _pair_geom(c_h[i], j, blk, hyp, cfg, c_mean[i], c_cov[i], pm, pc)
