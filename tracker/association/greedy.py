@@ -44,6 +44,14 @@ for TT candidates that the bound ln G - ln c + ln r_max puts below previouslyUns
 integral), else by a refresh that rescores the pairs of all remaining reports against the hypotheses
 changed since the last refresh (one more ``integrate`` call). With S = e^{-nτ} the same bound skips
 the integral of every pair that cannot reach previouslyUnseen.
+
+Static hypotheses with the default gater live in a grid of cells kept across blocks
+(:func:`walk.grid_gate`), so a block's gate costs one query per report rather than a gating
+structure rebuilt over every hypothesis. UU and UT need no integrals, so their static blocks skip
+the scoring ahead altogether: :func:`walk.walk_sequential` takes the reports one by one against the
+current hypotheses, gating each with the grid (updated after every decision), which is the
+sequential algorithm itself. A ``gater`` given by the caller, and constant velocity, keep the
+per-block ``gate`` call.
 """
 
 from __future__ import annotations
