@@ -340,8 +340,9 @@ class Tracker:
         z, V, t = self._check(reports)
         if not z.shape[0]:
             return np.zeros(0, dtype=np.int64)
+        t0 = time.perf_counter()
         log_unseen, on = self._log_unseen(z, V)
-        self.timings_["integrals"] += time.perf_counter() - t_start
+        self.timings_["integrals"] += time.perf_counter() - t0
         if not on.all():
             off = np.flatnonzero(~on)
             if self.off_prior == "raise":
