@@ -168,7 +168,11 @@ def one_thread_when_small(fn: Callable, size_arg: int) -> Callable:
 class _HypothesisGrid:
     """The static hypotheses in a grid of square cells kept across blocks (:func:`walk.grid_place`,
     :func:`walk.grid_gate`): a block's gate is one query per report. The cell is set at the first block,
-    √(2γ λ_max(V)) of its reports (m), over the prior's bounds (hypotheses outside go to border cells)."""
+    √(2γ λ) with λ the median largest eigenvalue of its report covariances (m), over the prior's bounds
+    (hypotheses outside go to border cells); hypotheses with an eigenvalue above WIDE · λ go to the
+    wide list that every query scans."""
+
+    WIDE = 4.0
 
     def __init__(self, bounds: tuple[float, float, float, float], gamma: float) -> None:
         self.bounds = bounds
@@ -177,11 +181,11 @@ class _HypothesisGrid:
 
     def _start(self, V: np.ndarray, capacity: int) -> None:
         xmin, ymin, xmax, ymax = self.bounds
-        lam_v = float(np.max(np.linalg.eigvalsh(V)[:, -1]))
+        lam_v = float(np.median(np.linalg.eigvalsh(V)[:, -1]))
         cell = max(math.sqrt(2.0 * self.gamma * lam_v), math.sqrt((xmax - xmin) * (ymax - ymin) / MAX_GRID_CELLS), 1e-3)
         nx, ny = math.ceil((xmax - xmin) / cell) or 1, math.ceil((ymax - ymin) / cell) or 1
-        geo = np.array([xmin, ymin, cell, float(nx), float(ny), 0.0])
-        self.arrays = (geo, np.full(nx * ny, -1, np.int64), *(np.full(capacity, -1, np.int64) for _ in range(3)))
+        geo = np.array([xmin, ymin, cell, float(nx), float(ny), 0.0, self.WIDE * cell * cell / (2.0 * self.gamma)])
+        self.arrays = (geo, np.full(nx * ny + 1, -1, np.int64), *(np.full(capacity, -1, np.int64) for _ in range(3)))
 
     def reserve(self, V: np.ndarray, capacity: int) -> None:
         """Room for ``capacity`` hypotheses (the first call sizes the cells from the block's covariances)."""

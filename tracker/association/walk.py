@@ -416,11 +416,12 @@ def link_pairs(j, pool, istate, f_rep, f_h, f_score, f_mean, f_cov, f_logc, hyp,
 
 # ----------------------------------------------------------------------------- the hypotheses' grid
 # Static hypotheses kept in a uniform grid of square cells across the tracker's whole run (``hgrid =
-# (geo, head, nxt, prv, cell_of)``, geo = [x0, y0, cell, nx, ny, lam_a]): a hypothesis is linked into
-# the list of the cell holding its mean (positions outside the grid go to its border cells, so a
-# clamped query still finds them), lam_a bounds the largest eigenvalue of every hypothesis covariance
-# (m²). A block's gate is then one query per report instead of a structure rebuilt over all
-# hypotheses per block.
+# (geo, head, nxt, prv, cell_of)``, geo = [x0, y0, cell, nx, ny, lam_a, lam_wide]): a hypothesis is
+# linked into the list of the cell holding its mean (positions outside the grid go to its border
+# cells, so a clamped query still finds them), lam_a bounds the largest eigenvalue of every listed
+# hypothesis covariance (m²). A hypothesis wider than lam_wide goes to one extra list (head[nx·ny])
+# that every query scans, so one huge hypothesis cannot widen every query. A block's gate is then one
+# query per report instead of a structure rebuilt over all hypotheses per block.
 
 
 @njit(cache=True)
@@ -432,13 +433,18 @@ def _cell_index(v, v0, cell, n):
 
 @njit(cache=True)
 def grid_place(idx, Hm, Hc, hgrid):
-    """(Re)link hypotheses ``idx`` into the cell of their current mean and raise lam_a to cover them."""
+    """(Re)link hypotheses ``idx`` into the cell of their current mean (or the wide list) and raise lam_a
+    to cover those in cells."""
     geo, head, nxt, prv, cell_of = hgrid
     x0, y0, cell, nx, ny = geo[0], geo[1], geo[2], geo[3], geo[4]
     for i in range(idx.shape[0]):
         h = idx[i]
-        geo[5] = max(geo[5], _lam_max(Hc[h, 0, 0], Hc[h, 0, 1], Hc[h, 1, 1]))
-        c = _cell_index(Hm[h, 0], x0, cell, nx) * int(ny) + _cell_index(Hm[h, 1], y0, cell, ny)
+        lam = _lam_max(Hc[h, 0, 0], Hc[h, 0, 1], Hc[h, 1, 1])
+        if lam > geo[6]:
+            c = int(nx) * int(ny)  # the wide list
+        else:
+            geo[5] = max(geo[5], lam)
+            c = _cell_index(Hm[h, 0], x0, cell, nx) * int(ny) + _cell_index(Hm[h, 1], y0, cell, ny)
         old = cell_of[h]
         if old == c:
             continue
@@ -458,10 +464,28 @@ def grid_place(idx, Hm, Hc, hgrid):
 
 
 @njit(cache=True, inline="always")
+def _scan(h, k, z, V, gamma, Hm, Hc, nxt, out, n):
+    """The hypotheses of the list starting at h that gate report k at d² <= gamma, into ``out`` from n
+    on (as many as fit); returns the new count."""
+    while h >= 0:
+        s00 = Hc[h, 0, 0] + V[k, 0, 0]
+        s01 = Hc[h, 0, 1] + V[k, 0, 1]
+        s11 = Hc[h, 1, 1] + V[k, 1, 1]
+        dx = z[k, 0] - Hm[h, 0]
+        dy = z[k, 1] - Hm[h, 1]
+        if (s11 * dx * dx - 2.0 * s01 * dx * dy + s00 * dy * dy) <= gamma * (s00 * s11 - s01 * s01):
+            if n < out.shape[0]:
+                out[n] = h
+            n += 1
+        h = nxt[h]
+    return n
+
+
+@njit(cache=True, inline="always")
 def _grid_query(k, z, V, gamma, Hm, Hc, hgrid, out):
     """Hypotheses of the grid gating report k at d² <= gamma, into ``out`` (as many as fit: pass an empty
     one to count); returns their number. The query square has half-side √(γ(λ_max(V_k) + lam_a)) ≥ the largest
-    distance of a gated mean, since d² >= |z - a|² / λ_max(A + V)."""
+    distance of a gated mean in a cell, since d² >= |z - a|² / λ_max(A + V); the wide list is scanned whole."""
     geo, head, nxt = hgrid[0], hgrid[1], hgrid[2]
     x0, y0, cell, nx, ny = geo[0], geo[1], geo[2], geo[3], geo[4]
     radius = math.sqrt(gamma * (_lam_max(V[k, 0, 0], V[k, 0, 1], V[k, 1, 1]) + geo[5])) * (1.0 + 1e-9)
@@ -469,21 +493,10 @@ def _grid_query(k, z, V, gamma, Hm, Hc, hgrid, out):
     cx1 = _cell_index(z[k, 0] + radius, x0, cell, nx)
     cy0 = _cell_index(z[k, 1] - radius, y0, cell, ny)
     cy1 = _cell_index(z[k, 1] + radius, y0, cell, ny)
-    n = 0
+    n = _scan(head[int(nx) * int(ny)], k, z, V, gamma, Hm, Hc, nxt, out, 0)
     for cx in range(cx0, cx1 + 1):
         for cy in range(cy0, cy1 + 1):
-            h = head[cx * int(ny) + cy]
-            while h >= 0:
-                s00 = Hc[h, 0, 0] + V[k, 0, 0]
-                s01 = Hc[h, 0, 1] + V[k, 0, 1]
-                s11 = Hc[h, 1, 1] + V[k, 1, 1]
-                dx = z[k, 0] - Hm[h, 0]
-                dy = z[k, 1] - Hm[h, 1]
-                if (s11 * dx * dx - 2.0 * s01 * dx * dy + s00 * dy * dy) <= gamma * (s00 * s11 - s01 * s01):
-                    if n < out.shape[0]:
-                        out[n] = h
-                    n += 1
-                h = nxt[h]
+            n = _scan(head[cx * int(ny) + cy], k, z, V, gamma, Hm, Hc, nxt, out, n)
     return n
 
 
