@@ -44,11 +44,20 @@ for TT candidates that the bound ln G - ln c + ln r_max puts below previouslyUns
 integral), else by a refresh that rescores the pairs of all remaining reports against the hypotheses
 changed since the last refresh (one more ``integrate`` call). With S = e^{-nτ} the same bound skips
 the integral of every pair that cannot reach previouslyUnseen.
+
+Static hypotheses with the default gater live in a grid of cells kept across blocks
+(:func:`walk.grid_gate`), so a block's gate costs one query per report rather than a gating
+structure rebuilt over every hypothesis. UU and UT need no integrals, so their static blocks skip
+the scoring ahead altogether: :func:`walk.walk_sequential` takes the reports one by one against the
+current hypotheses, gating each with the grid (updated after every decision), which is the
+sequential algorithm itself. A ``gater`` given by the caller, and constant velocity, keep the
+per-block ``gate`` call.
 """
 
 from __future__ import annotations
 
 import math
+import time
 import weakref
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -65,9 +74,12 @@ from tracker.association.walk import (
     build_report_grid,
     decide,
     fresh_pairs,
+    grid_gate,
+    grid_place,
     link_pairs,
     pair_geometry,
     walk,
+    walk_sequential,
 )
 from tracker.integrate import Integrator, integrate_checked
 from tracker.models.motion import ConstantVelocity, MotionModel, Static
@@ -89,6 +101,10 @@ MASS_FLOOR = 1e-10
 """Prior mass near a report (∫G(z,V) r · 2π√det V) below which it is off the prior (rounding floor)."""
 LOW_C = 256
 """Hypotheses of least normaliser that the gate bound checks one by one (the rest share a floor)."""
+MAX_GRID_CELLS = 1 << 22
+"""Cells of the static hypotheses' grid at most (its cell grows on larger priors)."""
+TIMINGS = ("gate", "geometry", "integrals", "walk", "refresh", "growth", "setup", "total")
+"""Keys of ``Tracker.timings_``: seconds in each step of the block loop (see :meth:`Tracker._block`)."""
 _RMAX_SLACK = math.log(2.0)
 _LOG_2PI = math.log(2.0 * math.pi)
 
@@ -149,6 +165,38 @@ def one_thread_when_small(fn: Callable, size_arg: int) -> Callable:
     return run
 
 
+class _HypothesisGrid:
+    """The static hypotheses in a grid of square cells kept across blocks (:func:`walk.grid_place`,
+    :func:`walk.grid_gate`): a block's gate is one query per report. The cell is set at the first block,
+    √(2γ λ) with λ the median largest eigenvalue of its report covariances (m), over the prior's bounds
+    (hypotheses outside go to border cells); hypotheses with an eigenvalue above WIDE · λ go to the
+    wide list that every query scans."""
+
+    WIDE = 4.0
+
+    def __init__(self, bounds: tuple[float, float, float, float], gamma: float) -> None:
+        self.bounds = bounds
+        self.gamma = gamma
+        self.arrays: tuple | None = None
+
+    def _start(self, V: np.ndarray, capacity: int) -> None:
+        xmin, ymin, xmax, ymax = self.bounds
+        lam_v = float(np.median(np.linalg.eigvalsh(V)[:, -1]))
+        cell = max(math.sqrt(2.0 * self.gamma * lam_v), math.sqrt((xmax - xmin) * (ymax - ymin) / MAX_GRID_CELLS), 1e-3)
+        nx, ny = math.ceil((xmax - xmin) / cell) or 1, math.ceil((ymax - ymin) / cell) or 1
+        geo = np.array([xmin, ymin, cell, float(nx), float(ny), 0.0, self.WIDE * cell * cell / (2.0 * self.gamma)])
+        self.arrays = (geo, np.full(nx * ny + 1, -1, np.int64), *(np.full(capacity, -1, np.int64) for _ in range(3)))
+
+    def reserve(self, V: np.ndarray, capacity: int) -> None:
+        """Room for ``capacity`` hypotheses (the first call sizes the cells from the block's covariances)."""
+        if self.arrays is None:
+            self._start(V, capacity)
+        old = self.arrays[2].shape[0]
+        if capacity > old:
+            grown = tuple(np.concatenate([a, np.full(capacity - old, -1, np.int64)]) for a in self.arrays[2:])
+            self.arrays = self.arrays[:2] + grown
+
+
 class _PairPool:
     """Scored (hypothesis, report) pairs of a block as a growable pool of per-report linked lists."""
 
@@ -197,7 +245,8 @@ class Tracker:
     :func:`tracker.gating.gate.gate_unchecked` (the reports and hypotheses are checked already); ``integrator`` (an :class:`~tracker.integrate.Integrator`, given
     only Gaussians built from checked reports) to :func:`tracker.integrate.integrate_checked`.
 
-    Fitted state: ``hypotheses_``, ``n_detected_``, ``n_reports_`` (k), ``stats_``.
+    Fitted state: ``hypotheses_``, ``n_detected_``, ``n_reports_`` (k), ``stats_``, ``timings_`` (seconds
+    per step of the block loop, keys :data:`TIMINGS`; "total" minus the others is Python overhead).
     """
 
     def __init__(
@@ -231,6 +280,12 @@ class Tracker:
         self.block = int(block)
         self.off_prior = off_prior
         self.gater = one_thread_when_small(gater or _default_gater(), 2)  # sized by the reports
+        # Static hypotheses with the default gater: a grid kept across blocks (walk.grid_gate) gates them.
+        static = not isinstance(self.motion, ConstantVelocity)
+        self._grid = _HypothesisGrid(prior.grid.bounds, self.gamma) if gater is None and static else None
+        self._grid_gate = one_thread_when_small(grid_gate, 0)
+        # UU/UT need no integrals, so their static blocks run as the plain sequential loop in numba.
+        self._sequential = self._grid is not None and not self.terrain_association
         self.integrator = one_thread_when_small(integrator or integrate_checked, 1)
         xmin, ymin, xmax, ymax = prior.grid.bounds
         self.log_u = -math.log((xmax - xmin) * (ymax - ymin))
@@ -239,6 +294,7 @@ class Tracker:
         self.n_reports_ = 0
         self._last_time = -np.inf
         self.stats_ = {"blocks": 0, "pairs": 0, "conflicts": 0, "widened": 0, "skipped": 0, "integrals": 0}
+        self.timings_ = dict.fromkeys(TIMINGS, 0.0)
 
     @property
     def terrain_association(self) -> bool:
@@ -284,10 +340,13 @@ class Tracker:
         times (constant velocity) or reports off the prior (``off_prior="raise"``); the tracker is
         unchanged when it raises.
         """
+        t_start = time.perf_counter()
         z, V, t = self._check(reports)
         if not z.shape[0]:
             return np.zeros(0, dtype=np.int64)
+        t0 = time.perf_counter()
         log_unseen, on = self._log_unseen(z, V)
+        self.timings_["integrals"] += time.perf_counter() - t0
         if not on.all():
             off = np.flatnonzero(~on)
             if self.off_prior == "raise":
@@ -298,11 +357,13 @@ class Tracker:
             self.stats_["skipped"] += off.size
         assign = np.full(z.shape[0], -1, dtype=np.int64)
         keep = np.flatnonzero(on)
-        for s in range(0, keep.size, self.block):
-            idx = keep[s : s + self.block]
+        step = max(keep.size, 1) if self._sequential else self.block  # the sequential loop needs no blocks
+        for s in range(0, keep.size, step):
+            idx = keep[s : s + step]
             assign[idx] = self._block(z[idx], V[idx], t[idx], log_unseen[idx])
         if t.size:
             self._last_time = max(self._last_time, float(t[keep].max()) if keep.size else self._last_time)
+        self.timings_["total"] += time.perf_counter() - t_start
         return assign
 
     # -- one block
@@ -310,11 +371,14 @@ class Tracker:
     def _score(self, rep: np.ndarray, h: np.ndarray, blk, hyp, cfg):
         """Scores ln[G(z; a, A+V) ∫G(b,B)r / c] (ln G for UU/UT) of pairs (block report rep, hypothesis h)
         from the current hypotheses, with the posterior state, covariance and ln c of each pair."""
+        t0 = time.perf_counter()
         log_g, post_m, post_c, pred_m, pred_c = pair_geometry(rep, h, blk, hyp, cfg)
+        self.timings_["geometry"] += time.perf_counter() - t0
         if not self.terrain_association:
             return log_g, post_m, post_c, np.full(h.size, self.log_u)
         if not h.size:
             return log_g, post_m, post_c, np.zeros(0)
+        t0 = time.perf_counter()
         if isinstance(self.motion, ConstantVelocity):
             log_c = _log(self.integrator(self.prior, pred_m, pred_c))
             need = np.ones(h.size, bool)
@@ -323,10 +387,12 @@ class Tracker:
             need = self._needs_integral(log_g - log_c, blk[3][rep])
         self.stats_["integrals"] += int(need.sum()) + (h.size if isinstance(self.motion, ConstantVelocity) else 0)
         log_i = np.zeros(h.size)
-        log_i[need] = _log(self.integrator(self.prior, post_m[need, :2], np.ascontiguousarray(post_c[need, :2, :2])))
+        if need.any():  # a refresh often needs none: skip the integrator's per-call cost
+            log_i[need] = _log(self.integrator(self.prior, post_m[need, :2], np.ascontiguousarray(post_c[need, :2, :2])))
         score = np.full(h.size, -np.inf)
         ok = need & np.isfinite(log_i)
         score[ok] = log_g[ok] + log_i[ok] - log_c[ok]
+        self.timings_["integrals"] += time.perf_counter() - t0
         return score, post_m, post_c, log_i
 
     def _needs_integral(self, log_g_over_c: np.ndarray, log_unseen: np.ndarray) -> np.ndarray:
@@ -342,6 +408,8 @@ class Tracker:
         H = self.hypotheses_
         if H.n == 0:
             return np.zeros(z.shape[0] + 1, np.int64), np.zeros(0, np.int64)
+        if self._grid is not None:
+            return self._grid_gate(z, V, self.gamma, H._means, H._covs, self._grid.arrays)
         if isinstance(self.motion, ConstantVelocity):
             h, r = self.gater(H.means, H.covs, z, V, threshold=self.gamma, report_times=t,
                               track_times=H.times, process_noise=self.motion.q)
@@ -366,13 +434,25 @@ class Tracker:
     def _block(self, z, V, t, log_unseen) -> np.ndarray:
         """Reports of one block in order (see :mod:`tracker.association.walk`): gate and score against the
         block-start state, walk, and on a conflict refresh the pairs of the remaining reports with the
-        hypotheses changed since the last refresh (one scoring call per refresh)."""
+        hypotheses changed since the last refresh (one scoring call per refresh). Each step's seconds
+        go to ``timings_``."""
+        clock = time.perf_counter
+        tm = self.timings_
+        t_start = clock()
         H = self.hypotheses_
         m = z.shape[0]
+        H.reserve(m)
+        if self._grid is not None:
+            self._grid.reserve(V, H.capacity)
+        t0 = clock()
+        tm["growth"] += t0 - t_start
+        if self._sequential:
+            return self._block_sequential(z, V, t, log_unseen)
         ptr, p_h = self._gate(z, V, t)
+        t1 = clock()
+        tm["gate"] += t1 - t0
         p_rep = np.repeat(np.arange(m), np.diff(ptr))
         pool = _PairPool(m, H.state_dim, max(2 * p_h.size, 64))
-        H.reserve(m)
         dirty = np.zeros(H.capacity, dtype=np.bool_)
         low, is_low, floor = self._low_c(m)
         hyp = (H._means, H._covs, H._log_c, H._counts, H._times, dirty, np.zeros(m, dtype=np.int64), low, is_low)
@@ -380,13 +460,18 @@ class Tracker:
         blk = (z, V, t, log_unseen, 0.5 * np.linalg.slogdet(V)[1], np.zeros(m, dtype=np.bool_), assign,
                *build_report_grid(z, V, self.gamma), np.zeros(m, dtype=np.int64))
         istate = np.array([H.n, 0, self.n_reports_, 0, min(H.n, LOW_C)], dtype=np.int64)
-        fstate = np.array([floor, 0.0])
+        fstate = np.array([floor, 0.0, self._low_min(low, istate[4])])
         cfg = self._cfg()
+        tm["setup"] += clock() - t1
         pool.add(p_rep, p_h, self._score(p_rep, p_h, blk, hyp, cfg), hyp, istate, blk, 0)
         self.stats_["blocks"] += 1
         j = 0
         while j < m:
+            t0 = clock()
             j, status = walk(j, blk, pool.arrays, hyp, istate, fstate, cfg)
+            t1 = clock()
+            tm["walk"] += t1 - t0
+            scoring = tm["geometry"] + tm["integrals"]  # counted there, not as refresh
             H.n = int(istate[0])
             if status == CONFLICT:
                 self.stats_["conflicts"] += 1
@@ -401,9 +486,41 @@ class Tracker:
                     raise RuntimeError(f"report {j}: decision failed after widening the gate")
                 H.n = int(istate[0])
                 j += 1
+            tm["refresh"] += clock() - t1 - (tm["geometry"] + tm["integrals"] - scoring)
+        t0 = clock()
+        if self._grid is not None:
+            grid_place(assign, H._means, H._covs, self._grid.arrays)
+        tm["walk"] += clock() - t0
         self.stats_["pairs"] += int(istate[3])
         self.n_reports_ = int(istate[2])
         return assign
+
+    def _block_sequential(self, z, V, t, log_unseen) -> np.ndarray:
+        """UU/UT with static hypotheses: the whole block in :func:`walk.walk_sequential` (no scoring ahead)."""
+        t0 = time.perf_counter()
+        H = self.hypotheses_
+        m = z.shape[0]
+        low, is_low, floor = self._low_c(m)
+        hyp = (H._means, H._covs, H._log_c, H._counts, H._times, np.zeros(H.capacity, dtype=np.bool_),
+               np.zeros(m, dtype=np.int64), low, is_low)
+        assign = np.full(m, -1, dtype=np.int64)
+        none = np.zeros(0, np.int64)  # the block's report grid: not used here
+        blk = (z, V, t, log_unseen, 0.5 * np.linalg.slogdet(V)[1], np.zeros(m, dtype=np.bool_), assign,
+               none, none, np.zeros(6), none)
+        istate = np.array([H.n, 0, self.n_reports_, 0, min(H.n, LOW_C)], dtype=np.int64)
+        fstate = np.array([floor, 0.0, self._low_min(low, istate[4])])
+        t1 = time.perf_counter()
+        self.timings_["setup"] += t1 - t0
+        self.stats_["widened"] += walk_sequential(blk, hyp, istate, fstate, self._cfg(), self._grid.arrays)
+        self.timings_["walk"] += time.perf_counter() - t1
+        H.n = int(istate[0])
+        self.stats_["blocks"] += 1
+        self.n_reports_ = int(istate[2])
+        return assign
+
+    def _low_min(self, low: np.ndarray, n_low: int) -> float:
+        """Least ln c over the low list (inf when empty)."""
+        return float(self.hypotheses_._log_c[low[:n_low]].min()) if n_low else math.inf
 
     def _low_c(self, m: int) -> tuple[np.ndarray, np.ndarray, float]:
         """The LOW_C hypotheses of least ln c (checked one by one by the gate bound), a flag per

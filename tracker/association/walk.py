@@ -11,7 +11,8 @@ Block layout (all arrays, positions in metres, times in seconds):
 * hypotheses ``hyp = (means, covs, log_c, counts, times, dirty, dirty_list, low, is_low)`` with spare
   capacity; ``low`` lists the hypotheses whose ln c may lie below ``fstate[0]`` (checked one by one by
   the gate bound), every other hypothesis has ln c >= ``fstate[0]``;
-* ``istate = [N̂_D, n_dirty, k, pool size, n_low]``, ``fstate = [ln c floor, γ needed when widening]``;
+* ``istate = [N̂_D, n_dirty, k, pool size, n_low]``, ``fstate = [ln c floor, γ needed when widening,
+  a lower bound on ln c over the low list]``;
 * ``cfg = (gamma, terrain_ratio, log_rmax, s_kind, s_param, motion, q, vel_std)``.
 
 A report is decided here only if no earlier decision of the block touched a hypothesis of its gate
@@ -24,7 +25,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from tracker.models.motion import MOTION_CV, cv_cov_entry, cv_mean_entry
 from tracker.models.sfunc import log_s_ratio_code
@@ -188,9 +189,10 @@ def _gated_reports(h, after, blk, hyp, cfg, out):
 
 
 @njit(cache=True)
-def decide(j, cand, nc, c_h, c_score, c_mean, c_cov, c_logc, check_gate, blk, hyp, istate, fstate, cfg):
+def decide(j, cand, nc, c_h, c_score, c_mean, c_cov, c_logc, check_gate, blk, hyp, istate, fstate, cfg, mark=True):
     """Decide report j among candidate pairs ``cand[:nc]`` (indices into the c_* arrays) and apply the
-    estimation step; returns DONE, or WIDEN when the gate bound fails (nothing changed then)."""
+    estimation step; returns DONE, or WIDEN when the gate bound fails (nothing changed then). ``mark``:
+    flag the later reports of the block in the changed hypothesis's gate as conflicted (block walk)."""
     z, V, t, log_unseen, half_logdet_v, conflicted, assign = blk[0], blk[1], blk[2], blk[3], blk[4], blk[5], blk[6]
     Hm, Hc, Hlogc, Hcount, Ht, dirty, dirty_list, low, is_low = hyp
     gamma, terrain_ratio, log_rmax, s_kind, s_param, motion, q, vel_std = cfg
@@ -213,9 +215,10 @@ def decide(j, cand, nc, c_h, c_score, c_mean, c_cov, c_logc, check_gate, blk, hy
         top = max(best, unseen)
         need = 0.0
         glob = base
+        # The low list one by one only when its least ln c could break the bound (d² > γ there too).
         if terrain_ratio:
             glob = base + log_rmax - fstate[0]
-            for i in range(istate[4]):
+            for i in range(istate[4] if base - 0.5 * gamma + log_rmax - fstate[2] > top else 0):
                 h = low[i]
                 x, y, c00, c01, c11 = _pos_at(Hm, Hc, Ht, h, t[j], motion, q)
                 s00, s01, s11 = c00 + V[j, 0, 0], c01 + V[j, 0, 1], c11 + V[j, 1, 1]
@@ -255,13 +258,16 @@ def decide(j, cand, nc, c_h, c_score, c_mean, c_cov, c_logc, check_gate, blk, hy
         low[istate[4]] = h
         is_low[h] = True
         istate[4] += 1
+    if is_low[h]:
+        fstate[2] = min(fstate[2], Hlogc[h])
     if not dirty[h]:
         dirty[h] = True
         dirty_list[istate[1]] = h
         istate[1] += 1
-    buf = blk[10]
-    for i in range(_gated_reports(h, j, blk, hyp, cfg, buf)):
-        conflicted[buf[i]] = True
+    if mark:
+        buf = blk[10]
+        for i in range(_gated_reports(h, j, blk, hyp, cfg, buf)):
+            conflicted[buf[i]] = True
     istate[2] += 1
     assign[j] = h
     return DONE
@@ -406,3 +412,149 @@ def link_pairs(j, pool, istate, f_rep, f_h, f_score, f_mean, f_cov, f_logc, hyp,
     for i in range(istate[1]):
         dirty[dirty_list[i]] = False
     istate[1] = 0
+
+
+# ----------------------------------------------------------------------------- the hypotheses' grid
+# Static hypotheses kept in a uniform grid of square cells across the tracker's whole run (``hgrid =
+# (geo, head, nxt, prv, cell_of)``, geo = [x0, y0, cell, nx, ny, lam_a, lam_wide]): a hypothesis is
+# linked into the list of the cell holding its mean (positions outside the grid go to its border
+# cells, so a clamped query still finds them), lam_a bounds the largest eigenvalue of every listed
+# hypothesis covariance (m²). A hypothesis wider than lam_wide goes to one extra list (head[nx·ny])
+# that every query scans, so one huge hypothesis cannot widen every query. A block's gate is then one
+# query per report instead of a structure rebuilt over all hypotheses per block.
+
+
+@njit(cache=True)
+def _cell_index(v, v0, cell, n):
+    """Cell of coordinate v (m) on an axis of n cells from v0, clamped to the grid (float first: no overflow)."""
+    c = math.floor((v - v0) / cell)
+    return int(min(max(c, 0.0), n - 1.0))
+
+
+@njit(cache=True)
+def grid_place(idx, Hm, Hc, hgrid):
+    """(Re)link hypotheses ``idx`` into the cell of their current mean (or the wide list) and raise lam_a
+    to cover those in cells."""
+    geo, head, nxt, prv, cell_of = hgrid
+    x0, y0, cell, nx, ny = geo[0], geo[1], geo[2], geo[3], geo[4]
+    for i in range(idx.shape[0]):
+        h = idx[i]
+        lam = _lam_max(Hc[h, 0, 0], Hc[h, 0, 1], Hc[h, 1, 1])
+        if lam > geo[6]:
+            c = int(nx) * int(ny)  # the wide list
+        else:
+            geo[5] = max(geo[5], lam)
+            c = _cell_index(Hm[h, 0], x0, cell, nx) * int(ny) + _cell_index(Hm[h, 1], y0, cell, ny)
+        old = cell_of[h]
+        if old == c:
+            continue
+        if old >= 0:  # unlink
+            if prv[h] >= 0:
+                nxt[prv[h]] = nxt[h]
+            else:
+                head[old] = nxt[h]
+            if nxt[h] >= 0:
+                prv[nxt[h]] = prv[h]
+        prv[h] = -1
+        nxt[h] = head[c]
+        if head[c] >= 0:
+            prv[head[c]] = h
+        head[c] = h
+        cell_of[h] = c
+
+
+@njit(cache=True, inline="always")
+def _scan(h, k, z, V, gamma, Hm, Hc, nxt, out, n):
+    """The hypotheses of the list starting at h that gate report k at d² <= gamma, into ``out`` from n
+    on (as many as fit); returns the new count."""
+    while h >= 0:
+        s00 = Hc[h, 0, 0] + V[k, 0, 0]
+        s01 = Hc[h, 0, 1] + V[k, 0, 1]
+        s11 = Hc[h, 1, 1] + V[k, 1, 1]
+        dx = z[k, 0] - Hm[h, 0]
+        dy = z[k, 1] - Hm[h, 1]
+        if (s11 * dx * dx - 2.0 * s01 * dx * dy + s00 * dy * dy) <= gamma * (s00 * s11 - s01 * s01):
+            if n < out.shape[0]:
+                out[n] = h
+            n += 1
+        h = nxt[h]
+    return n
+
+
+@njit(cache=True, inline="always")
+def _grid_query(k, z, V, gamma, Hm, Hc, hgrid, out):
+    """Hypotheses of the grid gating report k at d² <= gamma, into ``out`` (as many as fit: pass an empty
+    one to count); returns their number. The query square has half-side √(γ(λ_max(V_k) + lam_a)) ≥ the largest
+    distance of a gated mean in a cell, since d² >= |z - a|² / λ_max(A + V); the wide list is scanned whole."""
+    geo, head, nxt = hgrid[0], hgrid[1], hgrid[2]
+    x0, y0, cell, nx, ny = geo[0], geo[1], geo[2], geo[3], geo[4]
+    radius = math.sqrt(gamma * (_lam_max(V[k, 0, 0], V[k, 0, 1], V[k, 1, 1]) + geo[5])) * (1.0 + 1e-9)
+    cx0 = _cell_index(z[k, 0] - radius, x0, cell, nx)
+    cx1 = _cell_index(z[k, 0] + radius, x0, cell, nx)
+    cy0 = _cell_index(z[k, 1] - radius, y0, cell, ny)
+    cy1 = _cell_index(z[k, 1] + radius, y0, cell, ny)
+    n = _scan(head[int(nx) * int(ny)], k, z, V, gamma, Hm, Hc, nxt, out, 0)
+    for cx in range(cx0, cx1 + 1):
+        for cy in range(cy0, cy1 + 1):
+            n = _scan(head[cx * int(ny) + cy], k, z, V, gamma, Hm, Hc, nxt, out, n)
+    return n
+
+
+@njit(cache=True, parallel=True)
+def grid_gate(z, V, gamma, Hm, Hc, hgrid):
+    """Gated pairs of reports (m, 2) / (m, 2, 2) against the grid's static hypotheses, CSR by report:
+    (ptr (m+1,), hypothesis per pair, in ascending order within each report). Both passes are parallel
+    over reports (the grid is only read)."""
+    m = z.shape[0]
+    count = np.zeros(m + 1, np.int64)
+    none = np.empty(0, np.int64)
+    for k in prange(m):
+        count[k + 1] = _grid_query(k, z, V, gamma, Hm, Hc, hgrid, none)
+    ptr = np.cumsum(count)
+    p_h = np.empty(ptr[m], np.int64)
+    for k in prange(m):
+        n = _grid_query(k, z, V, gamma, Hm, Hc, hgrid, p_h[ptr[k] : ptr[k + 1]])
+        p_h[ptr[k] : ptr[k] + n].sort()
+    return ptr, p_h
+
+
+@njit(cache=True)
+def _candidate_buffers(cap, D):
+    """Room for ``cap`` candidates of a report: hypothesis, score, posterior mean and covariance, ln c, index."""
+    return (np.empty(cap, np.int64), np.empty(cap), np.empty((cap, D)), np.empty((cap, D, D)), np.empty(cap),
+            np.arange(cap))
+
+
+@njit(cache=True)
+def walk_sequential(blk, hyp, istate, fstate, cfg, hgrid):
+    """UU/UT, static: the block's reports decided one by one against the current hypotheses, each gated
+    with the hypotheses' grid, which is updated after every decision. This is the sequential algorithm
+    itself (nothing is scored ahead, so nothing goes stale); a failed gate bound re-queries the grid
+    with the γ that makes it hold (the widening of the block walk). Returns the number of widened gates."""
+    z, V, log_unseen, assign = blk[0], blk[1], blk[3], blk[6]
+    Hm, Hc = hyp[0], hyp[1]
+    D = Hm.shape[1]
+    c_h, c_score, c_mean, c_cov, c_logc, idx = _candidate_buffers(64, D)
+    pm = np.empty(2)
+    pc = np.empty((2, 2))
+    one = np.empty(1, np.int64)
+    widened = 0
+    for j in range(z.shape[0]):
+        gamma = cfg[0]
+        check = True
+        while True:
+            nc = _grid_query(j, z, V, gamma, Hm, Hc, hgrid, c_h)
+            if nc > c_h.shape[0]:
+                c_h, c_score, c_mean, c_cov, c_logc, idx = _candidate_buffers(2 * nc, D)
+                _grid_query(j, z, V, gamma, Hm, Hc, hgrid, c_h)
+            for i in range(nc):
+                c_score[i] = _pair_geom(c_h[i], j, blk, hyp, cfg, c_mean[i], c_cov[i], pm, pc)
+                c_logc[i] = log_unseen[j]  # ln u: the uniform prior's normaliser
+            if decide(j, idx, nc, c_h, c_score, c_mean, c_cov, c_logc, check, blk, hyp, istate, fstate, cfg, False) == DONE:
+                break
+            gamma = fstate[1]
+            check = False
+            widened += 1
+        one[0] = assign[j]
+        grid_place(one, Hm, Hc, hgrid)
+    return widened

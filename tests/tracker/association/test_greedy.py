@@ -387,3 +387,39 @@ def test_blocks_equal_one_at_a_time_at_scale(variant):
     got = associate(prior, reports, variant, tau=-1.0, block=1024)
     np.testing.assert_array_equal(got.assignments, want)
     np.testing.assert_allclose(got.hypotheses.log_c, one.hypotheses_.log_c, rtol=1e-12)
+
+
+@pytest.mark.parametrize("variant", ["UU", "UT"])
+@pytest.mark.parametrize("gamma", [41.4, 3.0])
+def test_crowded_gate_matches_reference(prior, variant, gamma):
+    # 200 reports at one spot with S favouring new targets: gates of 100+ hypotheses (the sequential loop's
+    # candidate buffers grow), and gamma = 3 widens through the hypotheses' grid.
+    rng = np.random.default_rng(5)
+    n = 200
+    sd = rng.uniform(10.0, 60.0, (n, 2))
+    covs = np.stack([np.diag(s**2) for s in sd])
+    reports = Reports.create(7000.0 + rng.normal(0.0, 30.0, (n, 2)), covs)
+    want, hyp = reference(prior, reports, "UU", ExpS(-10.0))
+    res = associate(prior, reports, variant, tau=-10.0, gamma=gamma)
+    np.testing.assert_array_equal(res.assignments, want)
+    assert res.n_detected == len(hyp) > 64 and res.hypotheses.counts.max() > 1
+    assert gamma > 40 or res.stats["widened"] > 0
+    np.testing.assert_allclose(res.hypotheses.means, np.array([h[0] for h in hyp]), rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("variant", ["UU", "TT"])
+def test_timings_split_the_total(prior, variant):
+    # The profile's steps are disjoint parts of the update's time (Python overhead is what is left).
+    from tracker.association.greedy import TIMINGS
+
+    tr = Tracker(prior, variant, tau=-1.0, block=16)
+    tr.update(scenario(3, n_targets=40, n_reports=100)[0])
+    tm = tr.timings_
+    assert tuple(tm) == TIMINGS and all(v >= 0.0 for v in tm.values())
+    parts = sum(v for k, v in tm.items() if k != "total")
+    assert 0.0 < parts <= tm["total"]
+    assert tm["walk"] > 0.0
+    if variant == "TT":
+        assert tm["integrals"] > 0.0 and tm["gate"] > 0.0
+    else:  # the sequential loop: gating and products happen inside the walk
+        assert tm["gate"] == tm["geometry"] == tm["refresh"] == 0.0

@@ -1,0 +1,81 @@
+"""The static hypotheses' grid of the walk (walk.grid_place, walk.grid_gate) against brute force."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from tracker.association.greedy import _HypothesisGrid
+from tracker.association.walk import grid_gate, grid_place
+
+
+def _covs(rng, n, lo, hi):
+    ang = rng.uniform(0, np.pi, n)
+    sd = rng.uniform(lo, hi, (n, 2))
+    c, s = np.cos(ang), np.sin(ang)
+    out = np.empty((n, 2, 2))
+    out[:, 0, 0] = c * c * sd[:, 0] ** 2 + s * s * sd[:, 1] ** 2
+    out[:, 1, 1] = s * s * sd[:, 0] ** 2 + c * c * sd[:, 1] ** 2
+    out[:, 0, 1] = out[:, 1, 0] = c * s * (sd[:, 0] ** 2 - sd[:, 1] ** 2)
+    return out
+
+
+def _brute(Hm, Hc, z, V, gamma):
+    """Pairs (report, hypothesis) with d² <= gamma, every pair tested (numpy)."""
+    r = z[:, None, :] - Hm[None, :, :]
+    S = Hc[None] + V[:, None]
+    d2 = np.einsum("kni,knij,knj->kn", r, np.linalg.inv(S), r)
+    return {(int(k), int(h)) for k, h in zip(*np.nonzero(d2 <= gamma), strict=True)}
+
+
+def _pairs(ptr, p_h):
+    return {(k, int(h)) for k in range(ptr.size - 1) for h in p_h[ptr[k] : ptr[k + 1]]}
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(0, 300), m=st.integers(1, 200), spread=st.sampled_from([0.1, 1.0, 30.0]),
+       gamma=st.sampled_from([3.0, 41.4, 400.0]), outside=st.booleans())
+def test_grid_gate_equals_brute_force(seed, n, m, spread, gamma, outside):
+    # Hypotheses and reports anywhere (also off the grid's bounds: border cells), covariances over 2+ decades;
+    # hypotheses are moved after placement, so relinking is exercised too.
+    rng = np.random.default_rng(seed)
+    lo, hi = (-2000.0, 12000.0) if outside else (0.0, 10000.0)
+    Hm = rng.uniform(lo, hi, (n, 2))
+    Hc = _covs(rng, n, 2.0, 60.0 * spread)
+    z = rng.uniform(lo, hi, (m, 2))
+    V = _covs(rng, m, 2.0, 60.0)
+    grid = _HypothesisGrid((0.0, 0.0, 10000.0, 10000.0), gamma)
+    grid.reserve(V, max(n, 1))
+    grid_place(np.arange(n), Hm, Hc, grid.arrays)
+    moved = rng.random(n) < 0.5
+    Hm[moved] += rng.normal(0, 800.0, (int(moved.sum()), 2))
+    Hc[moved] *= 0.5  # fusion only shrinks a static covariance
+    grid_place(np.flatnonzero(moved), Hm, Hc, grid.arrays)
+    ptr, p_h = grid_gate(z, V, gamma, Hm, Hc, grid.arrays)
+    assert _pairs(ptr, p_h) == _brute(Hm, Hc, z, V, gamma)
+    for k in range(m):
+        assert np.all(np.diff(p_h[ptr[k] : ptr[k + 1]]) > 0)  # ascending, each once
+
+
+def test_grid_lists_hold_each_hypothesis_once():
+    rng = np.random.default_rng(3)
+    n = 500
+    Hm = rng.uniform(0, 5000, (n, 2))
+    Hc = _covs(rng, n, 5.0, 50.0)
+    grid = _HypothesisGrid((0.0, 0.0, 5000.0, 5000.0), 41.4)
+    grid.reserve(Hc, n)
+    for _ in range(5):
+        idx = rng.choice(n, 200)  # repeats: placing twice changes nothing
+        Hm[idx] = rng.uniform(0, 5000, (idx.size, 2))
+        grid_place(idx, Hm, Hc, grid.arrays)
+    grid_place(np.arange(n), Hm, Hc, grid.arrays)
+    geo, head, nxt, prv, cell_of = grid.arrays
+    seen = []
+    for c in range(head.size):
+        h, back = head[c], -1
+        while h >= 0:
+            assert cell_of[h] == c and prv[h] == back
+            seen.append(h)
+            back, h = h, nxt[h]
+    assert sorted(seen) == list(range(n))
