@@ -25,7 +25,7 @@ from tracker.gating.grid import (
     build_grid,
     counting_order,
     query_grid,
-    sort_pairs,
+    sorted_pairs,
     spatial_order,
     take_rows,
 )
@@ -126,13 +126,13 @@ def gate_checked(sc: Scene, threshold: float | None = None, *, prob: float | Non
     for k in range(plan.m):
         in_bin = by_bin[bin_start[k]:bin_start[k + 1]]
         if in_bin.size:
-            parts.append(_gate_bin(sc, plan, k, in_bin, gamma, w_logdet, buckets))
-    t_idx = np.concatenate([p[0] for p in parts]) if parts else np.zeros(0, np.int64)
-    r_idx = np.concatenate([p[1] for p in parts]) if parts else np.zeros(0, np.int64)
-    d2 = np.concatenate([p[2] for p in parts]) if parts else np.zeros(0)
-    t_idx, r_idx = t_perm[t_idx], r_perm[r_idx]
-    order = sort_pairs(t_idx, r_idx, nt)
-    return _result(t_idx[order], r_idx[order], d2[order], return_d2)
+            parts.append(_gate_bin(sc, plan, k, in_bin, gamma, w_logdet, buckets, t_perm,
+                                   r_perm))
+    if not parts:
+        return _result(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), return_d2)
+    t_idx, r_idx, d2 = (parts[0] if len(parts) == 1 else
+                        [np.concatenate([p[c] for p in parts]) for c in range(3)])
+    return _result(*sorted_pairs(t_idx, r_idx, d2, nt, nr), return_d2)
 
 
 def _spatially_sorted(sc: Scene, on_reports: bool) -> tuple[Scene, np.ndarray, np.ndarray]:
@@ -259,8 +259,9 @@ def _slack(r: np.ndarray, coord_slack: float) -> np.ndarray:
 
 
 def _gate_bin(sc: Scene, plan: _Plan, k: int, reports: np.ndarray, gamma: float,
-              w_logdet: float, buckets):
-    """Exact pairs between every track and the reports of time bin k."""
+              w_logdet: float, buckets, t_perm: np.ndarray, r_perm: np.ndarray):
+    """Exact pairs between every track and the reports of time bin k, as the caller's
+    (track, report) indices: ``t_perm`` / ``r_perm`` map the scene's rows to them."""
     tracks = np.arange(sc.tpos.shape[0])
     t_mid = plan.t_lo + (2 * k + 1) * plan.width
     w = plan.width * (1.0 + RADIUS_SLACK)
@@ -297,20 +298,18 @@ def _gate_bin(sc: Scene, plan: _Plan, k: int, reports: np.ndarray, gamma: float,
         cell = _bucket_cell(rad)
         grid = build_grid(tpos_k, tracks, bid, nb, cell)
         qpos = sc.rpos[reports]
-    if plan.on_reports:
-        rows = grid.members
-        t_loc, r_loc, d2 = query_grid(
-            np.ascontiguousarray(qpos), np.ascontiguousarray(rad), True, *_grid_args(grid),
-            sc.tpos, sc.tvel, sc.tcov, sc.ttime, sc.tq, take_rows(sc.rpos, rows),
-            take_rows(sc.rcov, rows), sc.rtime[rows], sc.moving, gamma, w_logdet)
-        return t_loc, rows[r_loc], d2
     rows = grid.members
-    t_loc, r_loc, d2 = query_grid(
-        np.ascontiguousarray(qpos), np.ascontiguousarray(rad), False, *_grid_args(grid),
-        take_rows(sc.tpos, rows), take_rows(sc.tvel, rows), take_rows(sc.tcov, rows),
-        sc.ttime[rows], sc.tq[rows], take_rows(sc.rpos, reports), take_rows(sc.rcov, reports),
-        sc.rtime[reports], sc.moving, gamma, w_logdet)
-    return rows[t_loc], reports[r_loc], d2
+    if plan.on_reports:
+        return query_grid(
+            np.ascontiguousarray(qpos), np.ascontiguousarray(rad), True, t_perm, r_perm[rows],
+            *_grid_args(grid), sc.tpos, sc.tvel, sc.tcov, sc.ttime, sc.tq,
+            take_rows(sc.rpos, rows), take_rows(sc.rcov, rows), sc.rtime[rows], sc.moving, gamma,
+            w_logdet)
+    return query_grid(
+        np.ascontiguousarray(qpos), np.ascontiguousarray(rad), False, r_perm[reports],
+        t_perm[rows], *_grid_args(grid), take_rows(sc.tpos, rows), take_rows(sc.tvel, rows),
+        take_rows(sc.tcov, rows), sc.ttime[rows], sc.tq[rows], take_rows(sc.rpos, reports),
+        take_rows(sc.rcov, reports), sc.rtime[reports], sc.moving, gamma, w_logdet)
 
 
 def _grid_args(grid):
