@@ -12,7 +12,7 @@ in the same numba kernel. Positions in metres, times in seconds, velocities in m
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
@@ -117,44 +117,35 @@ def gate_checked(sc: Scene, threshold: float | None = None, *, prob: float | Non
     if nt == 0 or nr == 0:
         return _result(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), return_d2)
     plan = _plan(sc, gamma, w_logdet, n_projections, orientation, constants)
-    sc, t_perm, r_perm = _spatially_sorted(sc, plan.on_reports)
-    plan = replace(plan, bin_of_report=plan.bin_of_report[r_perm], reach=plan.reach.take(t_perm),
-                   speed=plan.speed[t_perm], lam_r=plan.lam_r[r_perm],
-                   gamma_r=plan.gamma_r[r_perm], gamma_t=plan.gamma_t[t_perm])
-    parts = []
     by_bin, bin_start = counting_order(plan.bin_of_report, plan.m)
+    if plan.on_reports:  # tracks query, in spatial order at mid-scan
+        t_mid = 0.5 * (sc.rtime.min() + sc.rtime.max()) if sc.moving else 0.0
+        t_order = spatial_order(sc.tpos + (t_mid - sc.ttime)[:, None] * sc.tvel
+                                if sc.moving else sc.tpos)
+    else:  # each bin's reports query, in spatial order; rank: position among the bin's ids
+        r_order = spatial_order(sc.rpos)
+        sp_by_bin, _ = counting_order(plan.bin_of_report[r_order], plan.m)
+        r_order = r_order[sp_by_bin]
+        rank = np.empty(nr, np.int64)
+        rank[by_bin] = np.arange(nr) - np.repeat(bin_start[:-1], np.diff(bin_start))
+    parts = []
     for k in range(plan.m):
         in_bin = by_bin[bin_start[k]:bin_start[k + 1]]
-        if in_bin.size:
-            parts.append(_gate_bin(sc, plan, k, in_bin, gamma, w_logdet, buckets, t_perm,
-                                   r_perm))
+        if not in_bin.size:
+            continue
+        if plan.on_reports:
+            queries = (t_order, t_order)
+        else:
+            q_rows = r_order[bin_start[k]:bin_start[k + 1]]
+            queries = (q_rows, rank[q_rows])
+        parts.append(_gate_bin(sc, plan, k, in_bin, *queries, gamma, w_logdet, buckets))
     if not parts:
         return _result(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), return_d2)
+    if len(parts) == 1 and plan.on_reports:  # one grid queried by tracks: sorted already
+        return _result(*parts[0], return_d2)
     t_idx, r_idx, d2 = (parts[0] if len(parts) == 1 else
                         [np.concatenate([p[c] for p in parts]) for c in range(3)])
     return _result(*sorted_pairs(t_idx, r_idx, d2, nt, nr), return_d2)
-
-
-def _spatially_sorted(sc: Scene, on_reports: bool) -> tuple[Scene, np.ndarray, np.ndarray]:
-    """The scene with the querying set in spatial order, and both permutations.
-
-    Neighbouring queries then touch neighbouring cells and points: the kernels are bound by
-    memory latency, not arithmetic. The gridded set is copied into cell order per bin anyway.
-    """
-    nt, nr = sc.tpos.shape[0], sc.rpos.shape[0]
-    if not on_reports:  # reports query
-        r_perm = spatial_order(sc.rpos)
-        return replace(sc, rpos=take_rows(sc.rpos, r_perm), rcov=take_rows(sc.rcov, r_perm),
-                       rtime=sc.rtime[r_perm]), np.arange(nt), r_perm
-    if not sc.moving:
-        t_perm = spatial_order(sc.tpos)
-        return replace(sc, tpos=take_rows(sc.tpos, t_perm),
-                       tcov=take_rows(sc.tcov, t_perm)), t_perm, np.arange(nr)
-    t_mid = 0.5 * (sc.rtime.min() + sc.rtime.max())
-    t_perm = spatial_order(sc.tpos + (t_mid - sc.ttime)[:, None] * sc.tvel)
-    return replace(sc, tpos=take_rows(sc.tpos, t_perm), tvel=take_rows(sc.tvel, t_perm),
-                   tcov=take_rows(sc.tcov, t_perm), ttime=sc.ttime[t_perm],
-                   tq=sc.tq[t_perm]), t_perm, np.arange(nr)
 
 
 def _result(t_idx, r_idx, d2, return_d2):
@@ -258,10 +249,13 @@ def _slack(r: np.ndarray, coord_slack: float) -> np.ndarray:
     return r * (1.0 + RADIUS_SLACK) + coord_slack
 
 
-def _gate_bin(sc: Scene, plan: _Plan, k: int, reports: np.ndarray, gamma: float,
-              w_logdet: float, buckets, t_perm: np.ndarray, r_perm: np.ndarray):
-    """Exact pairs between every track and the reports of time bin k, as the caller's
-    (track, report) indices: ``t_perm`` / ``r_perm`` map the scene's rows to them."""
+def _gate_bin(sc: Scene, plan: _Plan, k: int, reports: np.ndarray, q_rows: np.ndarray,
+              q_rank: np.ndarray, gamma: float, w_logdet: float, buckets):
+    """Exact pairs between every track and the reports of time bin k (ascending ids), as
+    (track, report, d²) grouped by the querying object's id, ascending. The queries (every
+    track when ``plan.on_reports``, else the bin's reports) run in the order ``q_rows`` (ids,
+    spatial order: the kernel is bound by memory latency, and neighbouring queries then touch
+    neighbouring cells); ``q_rank`` is each query's rank among the querying ids."""
     tracks = np.arange(sc.tpos.shape[0])
     t_mid = plan.t_lo + (2 * k + 1) * plan.width
     w = plan.width * (1.0 + RADIUS_SLACK)
@@ -277,39 +271,37 @@ def _gate_bin(sc: Scene, plan: _Plan, k: int, reports: np.ndarray, gamma: float,
         bid, nb = _bucket_ids(np.sqrt(lam_r), buckets)
         lam_b = _bucket_max(lam_r, bid, nb)
         g_b = _bucket_max(g_r, bid, nb)
-        g = np.minimum(g_b[None, :], plan.gamma_t[:, None])
-        rad = np.sqrt(np.maximum(g, 0.0) * (sig[:, None] ** 2 + lam_b[None, :]))
-        rad = _slack(rad + w * plan.speed[:, None], plan.coord_slack)
+        g = np.minimum(g_b[None, :], plan.gamma_t[q_rows, None])
+        rad = np.sqrt(np.maximum(g, 0.0) * (sig[q_rows, None] ** 2 + lam_b[None, :]))
+        rad = _slack(rad + w * plan.speed[q_rows, None], plan.coord_slack)
         rad[(g < 0.0) | ~np.isfinite(rad)] = -1.0
         cell = _bucket_cell(rad)
         grid = build_grid(sc.rpos[reports], reports, bid, nb, cell)
-        qpos = tpos_k
+        qpos = take_rows(tpos_k, q_rows)
     else:
         reach = sig + w * plan.speed
         bid, nb = _bucket_ids(reach, buckets)
         sig_b = _bucket_max(sig, bid, nb)
         spd_b = _bucket_max(plan.speed, bid, nb)
         g_t = _bucket_max(plan.gamma_t, bid, nb)  # loosest track-side bound per bucket
-        g = np.minimum(g_r[:, None], g_t[None, :])
-        delta = np.abs(sc.rtime[reports] - t_mid) if sc.moving else np.zeros(reports.size)
-        rad = np.sqrt(np.maximum(g, 0.0) * (sig_b[None, :] ** 2 + lam_r[:, None]))
+        g = np.minimum(plan.gamma_r[q_rows, None], g_t[None, :])
+        delta = np.abs(sc.rtime[q_rows] - t_mid) if sc.moving else np.zeros(q_rows.size)
+        rad = np.sqrt(np.maximum(g, 0.0) * (sig_b[None, :] ** 2 + plan.lam_r[q_rows, None]))
         rad = _slack(rad + delta[:, None] * spd_b[None, :], plan.coord_slack)
         rad[(g < 0.0) | ~np.isfinite(rad)] = -1.0
         cell = _bucket_cell(rad)
         grid = build_grid(tpos_k, tracks, bid, nb, cell)
-        qpos = sc.rpos[reports]
+        qpos = take_rows(sc.rpos, q_rows)
     rows = grid.members
     if plan.on_reports:
         return query_grid(
-            np.ascontiguousarray(qpos), np.ascontiguousarray(rad), True, t_perm, r_perm[rows],
-            *_grid_args(grid), sc.tpos, sc.tvel, sc.tcov, sc.ttime, sc.tq,
-            take_rows(sc.rpos, rows), take_rows(sc.rcov, rows), sc.rtime[rows], sc.moving, gamma,
-            w_logdet)
+            qpos, rad, True, q_rows, q_rank, rows, *_grid_args(grid), sc.tpos, sc.tvel,
+            sc.tcov, sc.ttime, sc.tq, take_rows(sc.rpos, rows), take_rows(sc.rcov, rows),
+            sc.rtime[rows], sc.moving, gamma, w_logdet)
     return query_grid(
-        np.ascontiguousarray(qpos), np.ascontiguousarray(rad), False, r_perm[reports],
-        t_perm[rows], *_grid_args(grid), take_rows(sc.tpos, rows), take_rows(sc.tvel, rows),
-        take_rows(sc.tcov, rows), sc.ttime[rows], sc.tq[rows], take_rows(sc.rpos, reports),
-        take_rows(sc.rcov, reports), sc.rtime[reports], sc.moving, gamma, w_logdet)
+        qpos, rad, False, q_rows, q_rank, rows, *_grid_args(grid), take_rows(sc.tpos, rows),
+        take_rows(sc.tvel, rows), take_rows(sc.tcov, rows), sc.ttime[rows], sc.tq[rows],
+        sc.rpos, sc.rcov, sc.rtime, sc.moving, gamma, w_logdet)
 
 
 def _grid_args(grid):
