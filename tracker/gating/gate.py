@@ -12,7 +12,7 @@ in the same numba kernel. Positions in metres, times in seconds, velocities in m
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Protocol
 
 import numpy as np
@@ -118,27 +118,34 @@ def gate_checked(sc: Scene, threshold: float | None = None, *, prob: float | Non
         return _result(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), return_d2)
     plan = _plan(sc, gamma, w_logdet, n_projections, orientation, constants)
     by_bin, bin_start = counting_order(plan.bin_of_report, plan.m)
-    if plan.on_reports:  # tracks query, in spatial order at mid-scan
+    if plan.on_reports:  # tracks query in spatial order at mid-scan: a permuted copy
         t_mid = 0.5 * (sc.rtime.min() + sc.rtime.max()) if sc.moving else 0.0
-        t_order = spatial_order(sc.tpos + (t_mid - sc.ttime)[:, None] * sc.tvel
-                                if sc.moving else sc.tpos)
-    else:  # each bin's reports query, in spatial order; rank: position among the bin's ids
+        t_perm = spatial_order(sc.tpos + (t_mid - sc.ttime)[:, None] * sc.tvel
+                               if sc.moving else sc.tpos)
+        sc = replace(sc, tpos=take_rows(sc.tpos, t_perm), tcov=take_rows(sc.tcov, t_perm))
+        if sc.moving:  # static tracks have zero velocities, times and noise in any order
+            sc = replace(sc, tvel=take_rows(sc.tvel, t_perm), ttime=sc.ttime[t_perm],
+                         tq=sc.tq[t_perm])
+        plan = replace(plan, reach=plan.reach.take(t_perm), speed=plan.speed[t_perm],
+                       gamma_t=plan.gamma_t[t_perm])
+    else:  # each bin's reports query in spatial order: a copy permuted so that bins are slices
         r_order = spatial_order(sc.rpos)
-        sp_by_bin, _ = counting_order(plan.bin_of_report[r_order], plan.m)
-        r_order = r_order[sp_by_bin]
-        rank = np.empty(nr, np.int64)
+        r_perm = r_order[counting_order(plan.bin_of_report[r_order], plan.m)[0]]
+        rank = np.empty(nr, np.int64)  # position of a report among its bin's ids, ascending
         rank[by_bin] = np.arange(nr) - np.repeat(bin_start[:-1], np.diff(bin_start))
+        sc = replace(sc, rpos=take_rows(sc.rpos, r_perm), rcov=take_rows(sc.rcov, r_perm),
+                     rtime=sc.rtime[r_perm])
+        plan = replace(plan, lam_r=plan.lam_r[r_perm], gamma_r=plan.gamma_r[r_perm])
     parts = []
     for k in range(plan.m):
-        in_bin = by_bin[bin_start[k]:bin_start[k + 1]]
-        if not in_bin.size:
+        s, e = bin_start[k], bin_start[k + 1]
+        if s == e:
             continue
         if plan.on_reports:
-            queries = (t_order, t_order)
+            queries = (by_bin[s:e], t_perm, t_perm)
         else:
-            q_rows = r_order[bin_start[k]:bin_start[k + 1]]
-            queries = (q_rows, rank[q_rows])
-        parts.append(_gate_bin(sc, plan, k, in_bin, *queries, gamma, w_logdet, buckets))
+            queries = (slice(s, e), r_perm[s:e], rank[r_perm[s:e]])
+        parts.append(_gate_bin(sc, plan, k, *queries, gamma, w_logdet, buckets))
     if not parts:
         return _result(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), return_d2)
     if len(parts) == 1 and plan.on_reports:  # one grid queried by tracks: sorted already
@@ -249,13 +256,16 @@ def _slack(r: np.ndarray, coord_slack: float) -> np.ndarray:
     return r * (1.0 + RADIUS_SLACK) + coord_slack
 
 
-def _gate_bin(sc: Scene, plan: _Plan, k: int, reports: np.ndarray, q_rows: np.ndarray,
+def _gate_bin(sc: Scene, plan: _Plan, k: int, reports: np.ndarray | slice, q_ids: np.ndarray,
               q_rank: np.ndarray, gamma: float, w_logdet: float, buckets):
-    """Exact pairs between every track and the reports of time bin k (ascending ids), as
-    (track, report, d²) grouped by the querying object's id, ascending. The queries (every
-    track when ``plan.on_reports``, else the bin's reports) run in the order ``q_rows`` (ids,
-    spatial order: the kernel is bound by memory latency, and neighbouring queries then touch
-    neighbouring cells); ``q_rank`` is each query's rank among the querying ids."""
+    """Exact pairs between every track and the reports of time bin k (rows ``reports`` of the
+    scene), as (track id, report id, d²) grouped by the querying object's id, ascending.
+
+    The queries (every track when ``plan.on_reports``, else the bin's reports) are the
+    scene's rows in order (the caller put them in spatial order: the kernel is bound by memory
+    latency, and neighbouring queries then touch neighbouring cells); ``q_ids`` are their ids,
+    ``q_rank`` their ranks among them. Grid points are identified by their scene row, which
+    is their id (the gridded side is never permuted)."""
     tracks = np.arange(sc.tpos.shape[0])
     t_mid = plan.t_lo + (2 * k + 1) * plan.width
     w = plan.width * (1.0 + RADIUS_SLACK)
@@ -271,37 +281,35 @@ def _gate_bin(sc: Scene, plan: _Plan, k: int, reports: np.ndarray, q_rows: np.nd
         bid, nb = _bucket_ids(np.sqrt(lam_r), buckets)
         lam_b = _bucket_max(lam_r, bid, nb)
         g_b = _bucket_max(g_r, bid, nb)
-        g = np.minimum(g_b[None, :], plan.gamma_t[q_rows, None])
-        rad = np.sqrt(np.maximum(g, 0.0) * (sig[q_rows, None] ** 2 + lam_b[None, :]))
-        rad = _slack(rad + w * plan.speed[q_rows, None], plan.coord_slack)
+        g = np.minimum(g_b[None, :], plan.gamma_t[:, None])
+        rad = np.sqrt(np.maximum(g, 0.0) * (sig[:, None] ** 2 + lam_b[None, :]))
+        rad = _slack(rad + w * plan.speed[:, None], plan.coord_slack)
         rad[(g < 0.0) | ~np.isfinite(rad)] = -1.0
         cell = _bucket_cell(rad)
         grid = build_grid(sc.rpos[reports], reports, bid, nb, cell)
-        qpos = take_rows(tpos_k, q_rows)
-    else:
-        reach = sig + w * plan.speed
-        bid, nb = _bucket_ids(reach, buckets)
-        sig_b = _bucket_max(sig, bid, nb)
-        spd_b = _bucket_max(plan.speed, bid, nb)
-        g_t = _bucket_max(plan.gamma_t, bid, nb)  # loosest track-side bound per bucket
-        g = np.minimum(plan.gamma_r[q_rows, None], g_t[None, :])
-        delta = np.abs(sc.rtime[q_rows] - t_mid) if sc.moving else np.zeros(q_rows.size)
-        rad = np.sqrt(np.maximum(g, 0.0) * (sig_b[None, :] ** 2 + plan.lam_r[q_rows, None]))
-        rad = _slack(rad + delta[:, None] * spd_b[None, :], plan.coord_slack)
-        rad[(g < 0.0) | ~np.isfinite(rad)] = -1.0
-        cell = _bucket_cell(rad)
-        grid = build_grid(tpos_k, tracks, bid, nb, cell)
-        qpos = take_rows(sc.rpos, q_rows)
-    rows = grid.members
-    if plan.on_reports:
+        rows = grid.members
         return query_grid(
-            qpos, rad, True, q_rows, q_rank, rows, *_grid_args(grid), sc.tpos, sc.tvel,
-            sc.tcov, sc.ttime, sc.tq, take_rows(sc.rpos, rows), take_rows(sc.rcov, rows),
-            sc.rtime[rows], sc.moving, gamma, w_logdet)
+            np.ascontiguousarray(tpos_k), rad, True, q_ids, q_rank, rows, *_grid_args(grid),
+            sc.tpos, sc.tvel, sc.tcov, sc.ttime, sc.tq, take_rows(sc.rpos, rows),
+            take_rows(sc.rcov, rows), sc.rtime[rows], sc.moving, gamma, w_logdet)
+    reach = sig + w * plan.speed
+    bid, nb = _bucket_ids(reach, buckets)
+    sig_b = _bucket_max(sig, bid, nb)
+    spd_b = _bucket_max(plan.speed, bid, nb)
+    g_t = _bucket_max(plan.gamma_t, bid, nb)  # loosest track-side bound per bucket
+    g = np.minimum(g_r[:, None], g_t[None, :])
+    delta = np.abs(sc.rtime[reports] - t_mid) if sc.moving else np.zeros(lam_r.size)
+    rad = np.sqrt(np.maximum(g, 0.0) * (sig_b[None, :] ** 2 + lam_r[:, None]))
+    rad = _slack(rad + delta[:, None] * spd_b[None, :], plan.coord_slack)
+    rad[(g < 0.0) | ~np.isfinite(rad)] = -1.0
+    cell = _bucket_cell(rad)
+    grid = build_grid(tpos_k, tracks, bid, nb, cell)
+    rows = grid.members
     return query_grid(
-        qpos, rad, False, q_rows, q_rank, rows, *_grid_args(grid), take_rows(sc.tpos, rows),
-        take_rows(sc.tvel, rows), take_rows(sc.tcov, rows), sc.ttime[rows], sc.tq[rows],
-        sc.rpos, sc.rcov, sc.rtime, sc.moving, gamma, w_logdet)
+        sc.rpos[reports], rad, False, q_ids, q_rank, rows, *_grid_args(grid),
+        take_rows(sc.tpos, rows), take_rows(sc.tvel, rows), take_rows(sc.tcov, rows),
+        sc.ttime[rows], sc.tq[rows], sc.rpos[reports], sc.rcov[reports], sc.rtime[reports],
+        sc.moving, gamma, w_logdet)
 
 
 def _grid_args(grid):

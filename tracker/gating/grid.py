@@ -209,7 +209,7 @@ def _threads(work: int, available: int) -> int:
 
 
 @njit(cache=True, parallel=True)
-def _scan_kernel(qpos, qrad, query_is_track, q_rows, q_rank, p_ids, origin, cell, dims, seg, keys, dense,
+def _scan_kernel(qpos, qrad, query_is_track, q_ids, q_rank, p_ids, origin, cell, dims, seg, keys, dense,
                  table_seg, table, tpos, tvel, tcov, ttime, tq, rpos, rcov, rtime, moving, gamma,
                  w_logdet):
     """Offsets (nq + 1,) of each query's candidates (cumulative counts)."""
@@ -217,7 +217,7 @@ def _scan_kernel(qpos, qrad, query_is_track, q_rows, q_rank, p_ids, origin, cell
     counts = np.zeros(nq + 1, dtype=np.int64)
     no_i, no_f = np.empty(0, np.int64), np.empty(0)
     for i in prange(nq):
-        counts[i + 1] = _visit(i, qpos, qrad, query_is_track, q_rows, q_rank, p_ids, origin, cell, dims,
+        counts[i + 1] = _visit(i, qpos, qrad, query_is_track, q_ids, p_ids, origin, cell, dims,
                                seg, keys, dense, table_seg, table, tpos, tvel, tcov, ttime, tq,
                                rpos, rcov, rtime, moving, gamma, w_logdet, no_i, no_i, no_f, 0,
                                _SCAN)
@@ -225,7 +225,7 @@ def _scan_kernel(qpos, qrad, query_is_track, q_rows, q_rank, p_ids, origin, cell
 
 
 @njit(cache=True, parallel=True)
-def _fill_kernel(cand, qpos, qrad, query_is_track, q_rows, q_rank, p_ids, origin, cell, dims, seg, keys,
+def _fill_kernel(cand, qpos, qrad, query_is_track, q_ids, q_rank, p_ids, origin, cell, dims, seg, keys,
                  dense, table_seg, table, tpos, tvel, tcov, ttime, tq, rpos, rcov, rtime, moving,
                  gamma, w_logdet):
     """Exact-gated pairs between queries (rows of qpos, radius per bucket qrad (nq, K); a
@@ -242,7 +242,7 @@ def _fill_kernel(cand, qpos, qrad, query_is_track, q_rows, q_rank, p_ids, origin
     buf_d2 = np.empty(cand[-1])
     found = np.zeros(nq, dtype=np.int64)
     for i in prange(nq):
-        found[i] = _visit(i, qpos, qrad, query_is_track, q_rows, q_rank, p_ids, origin, cell, dims,
+        found[i] = _visit(i, qpos, qrad, query_is_track, q_ids, p_ids, origin, cell, dims,
                               seg, keys, dense, table_seg, table, tpos, tvel, tcov, ttime, tq,
                               rpos, rcov, rtime, moving, gamma, w_logdet, buf_t, buf_r, buf_d2,
                               cand[i], _FILL)
@@ -268,8 +268,8 @@ def _fill_kernel(cand, qpos, qrad, query_is_track, q_rows, q_rank, p_ids, origin
 _SCAN, _FILL = 0, 1
 
 
-@njit(cache=True)
-def _visit(i, qpos, qrad, query_is_track, q_rows, q_rank, p_ids, origin, cell, dims, seg, keys, dense,
+@njit(cache=True, inline="always")
+def _visit(i, qpos, qrad, query_is_track, q_ids, p_ids, origin, cell, dims, seg, keys, dense,
            table_seg, table, tpos, tvel, tcov, ttime, tq, rpos, rcov, rtime, moving, gamma,
            w_logdet, out_t, out_r, out_d2, at, mode):
     """Query i against the grid: the number of candidates (``_SCAN``), or the number of exact
@@ -278,7 +278,6 @@ def _visit(i, qpos, qrad, query_is_track, q_rows, q_rank, p_ids, origin, cell, d
     n_buckets = cell.shape[0]
     found = 0
     i = np.int64(i)  # parfor indices are unsigned; keep (t, r) integer when unified with m
-    q = q_rows[i]
     for b in range(n_buckets):
         r = qrad[i, b]
         if r < 0.0 or seg[b + 1] == seg[b]:
@@ -305,12 +304,12 @@ def _visit(i, qpos, qrad, query_is_track, q_rows, q_rank, p_ids, origin, cell, d
                     found += e - s
                     continue
                 for m in range(np.int64(s), np.int64(e)):
-                    t, rep = (q, m) if query_is_track else (m, q)
+                    t, rep = (i, m) if query_is_track else (m, i)
                     d2, ok = _pair_test(t, rep, tpos, tvel, tcov, ttime, tq, rpos, rcov, rtime,
                                         moving, gamma, w_logdet)
                     if ok:
-                        out_t[at + found] = q if query_is_track else p_ids[m]
-                        out_r[at + found] = p_ids[m] if query_is_track else q
+                        out_t[at + found] = q_ids[i] if query_is_track else p_ids[m]
+                        out_r[at + found] = p_ids[m] if query_is_track else q_ids[i]
                         out_d2[at + found] = d2
                         found += 1
     return found
