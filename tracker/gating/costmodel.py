@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from common.atomic import atomic_paths
+from tracker.gating.grid import bounding_box
 from tracker.gating.reach import ReachBound, ball_volume, max_abs_dt
 from tracker.gating.scene import Scene
 
@@ -114,9 +115,9 @@ def expected_candidates(sc: Scene, reach: ReachBound, spd: np.ndarray, lam_r: np
     """Expected candidate pairs for each M in ``m`` (from a sample of tracks)."""
     n_t, n_r, dim = sc.tpos.shape[0], sc.rpos.shape[0], sc.dim
     t_mid = float(sc.rtime.min()) + tau / 2
-    pos = sc.tpos + (t_mid - sc.ttime)[:, None] * sc.tvel
-    pts = np.vstack([pos, sc.rpos])
-    extent = np.maximum(pts.max(axis=0) - pts.min(axis=0), 1e-9)
+    t_lo, t_hi = bounding_box(sc.tpos + (t_mid - sc.ttime)[:, None] * sc.tvel)
+    r_lo, r_hi = bounding_box(sc.rpos)
+    extent = np.maximum(np.maximum(t_hi, r_hi) - np.minimum(t_lo, r_lo), 1e-9)
     pick = np.random.default_rng(0).choice(n_t, size=min(n_t, _SAMPLE), replace=False)
     sig = reach.sigma(max_abs_dt(sc.ttime[pick], t_mid - tau / 2, t_mid + tau / 2), pick)
     r0 = np.sqrt(gamma * (sig**2 + float(np.mean(lam_r))))

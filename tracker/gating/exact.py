@@ -18,8 +18,9 @@ RADIUS_SLACK = 1e-6
 
 
 @njit(cache=True, inline="always")
-def sym_d2_logdet(v00, v01, v02, v11, v12, v22, dx, dy, dz, dim):
-    """Mahalanobis d^2 = dx^T V^-1 dx and ln det V for symmetric V (2-D uses v00, v01, v11).
+def sym_d2_logdet(v00, v01, v02, v11, v12, v22, dx, dy, dz, dim, with_logdet=True):
+    """Mahalanobis d^2 = dx^T V^-1 dx and ln det V for symmetric V (2-D uses v00, v01, v11);
+    ln det is 0.0 unless ``with_logdet`` (the logarithm costs as much as the rest of the test).
 
     Returns (inf, -inf) when V is not numerically positive definite.
     """
@@ -28,7 +29,7 @@ def sym_d2_logdet(v00, v01, v02, v11, v12, v22, dx, dy, dz, dim):
         if not (v00 > 0.0 and det > 0.0):
             return np.inf, -np.inf
         d2 = (v11 * dx * dx - 2.0 * v01 * dx * dy + v00 * dy * dy) / det
-        return d2, math.log(det)
+        return d2, math.log(det) if with_logdet else 0.0
     c00 = v11 * v22 - v12 * v12
     c01 = v02 * v12 - v01 * v22
     c02 = v01 * v12 - v02 * v11
@@ -40,7 +41,7 @@ def sym_d2_logdet(v00, v01, v02, v11, v12, v22, dx, dy, dz, dim):
         return np.inf, -np.inf
     num = (c00 * dx * dx + c11 * dy * dy + c22 * dz * dz
            + 2.0 * (c01 * dx * dy + c02 * dx * dz + c12 * dy * dz))
-    return num / det, math.log(det)
+    return num / det, math.log(det) if with_logdet else 0.0
 
 
 @njit(cache=True)

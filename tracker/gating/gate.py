@@ -25,7 +25,7 @@ from tracker.gating.grid import (
     build_grid,
     counting_order,
     query_grid,
-    sort_pairs,
+    sorted_pairs,
     spatial_order,
     take_rows,
 )
@@ -117,44 +117,42 @@ def gate_checked(sc: Scene, threshold: float | None = None, *, prob: float | Non
     if nt == 0 or nr == 0:
         return _result(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), return_d2)
     plan = _plan(sc, gamma, w_logdet, n_projections, orientation, constants)
-    sc, t_perm, r_perm = _spatially_sorted(sc, plan.on_reports)
-    plan = replace(plan, bin_of_report=plan.bin_of_report[r_perm], reach=plan.reach.take(t_perm),
-                   speed=plan.speed[t_perm], lam_r=plan.lam_r[r_perm],
-                   gamma_r=plan.gamma_r[r_perm], gamma_t=plan.gamma_t[t_perm])
-    parts = []
     by_bin, bin_start = counting_order(plan.bin_of_report, plan.m)
+    if plan.on_reports:  # tracks query in spatial order at mid-scan: a permuted copy
+        t_mid = 0.5 * (sc.rtime.min() + sc.rtime.max()) if sc.moving else 0.0
+        t_perm = spatial_order(sc.tpos + (t_mid - sc.ttime)[:, None] * sc.tvel
+                               if sc.moving else sc.tpos)
+        sc = replace(sc, tpos=take_rows(sc.tpos, t_perm), tcov=take_rows(sc.tcov, t_perm))
+        if sc.moving:  # static tracks have zero velocities, times and noise in any order
+            sc = replace(sc, tvel=take_rows(sc.tvel, t_perm), ttime=sc.ttime[t_perm],
+                         tq=sc.tq[t_perm])
+        plan = replace(plan, reach=plan.reach.take(t_perm), speed=plan.speed[t_perm],
+                       gamma_t=plan.gamma_t[t_perm])
+    else:  # each bin's reports query in spatial order: a copy permuted so that bins are slices
+        r_order = spatial_order(sc.rpos)
+        r_perm = r_order[counting_order(plan.bin_of_report[r_order], plan.m)[0]]
+        rank = np.empty(nr, np.int64)  # position of a report among its bin's ids, ascending
+        rank[by_bin] = np.arange(nr) - np.repeat(bin_start[:-1], np.diff(bin_start))
+        sc = replace(sc, rpos=take_rows(sc.rpos, r_perm), rcov=take_rows(sc.rcov, r_perm),
+                     rtime=sc.rtime[r_perm])
+        plan = replace(plan, lam_r=plan.lam_r[r_perm], gamma_r=plan.gamma_r[r_perm])
+    parts = []
     for k in range(plan.m):
-        in_bin = by_bin[bin_start[k]:bin_start[k + 1]]
-        if in_bin.size:
-            parts.append(_gate_bin(sc, plan, k, in_bin, gamma, w_logdet, buckets))
-    t_idx = np.concatenate([p[0] for p in parts]) if parts else np.zeros(0, np.int64)
-    r_idx = np.concatenate([p[1] for p in parts]) if parts else np.zeros(0, np.int64)
-    d2 = np.concatenate([p[2] for p in parts]) if parts else np.zeros(0)
-    t_idx, r_idx = t_perm[t_idx], r_perm[r_idx]
-    order = sort_pairs(t_idx, r_idx, nt)
-    return _result(t_idx[order], r_idx[order], d2[order], return_d2)
-
-
-def _spatially_sorted(sc: Scene, on_reports: bool) -> tuple[Scene, np.ndarray, np.ndarray]:
-    """The scene with the querying set in spatial order, and both permutations.
-
-    Neighbouring queries then touch neighbouring cells and points: the kernels are bound by
-    memory latency, not arithmetic. The gridded set is copied into cell order per bin anyway.
-    """
-    nt, nr = sc.tpos.shape[0], sc.rpos.shape[0]
-    if not on_reports:  # reports query
-        r_perm = spatial_order(sc.rpos)
-        return replace(sc, rpos=take_rows(sc.rpos, r_perm), rcov=take_rows(sc.rcov, r_perm),
-                       rtime=sc.rtime[r_perm]), np.arange(nt), r_perm
-    if not sc.moving:
-        t_perm = spatial_order(sc.tpos)
-        return replace(sc, tpos=take_rows(sc.tpos, t_perm),
-                       tcov=take_rows(sc.tcov, t_perm)), t_perm, np.arange(nr)
-    t_mid = 0.5 * (sc.rtime.min() + sc.rtime.max())
-    t_perm = spatial_order(sc.tpos + (t_mid - sc.ttime)[:, None] * sc.tvel)
-    return replace(sc, tpos=take_rows(sc.tpos, t_perm), tvel=take_rows(sc.tvel, t_perm),
-                   tcov=take_rows(sc.tcov, t_perm), ttime=sc.ttime[t_perm],
-                   tq=sc.tq[t_perm]), t_perm, np.arange(nr)
+        s, e = bin_start[k], bin_start[k + 1]
+        if s == e:
+            continue
+        if plan.on_reports:
+            queries = (by_bin[s:e], t_perm, t_perm)
+        else:
+            queries = (slice(s, e), r_perm[s:e], rank[r_perm[s:e]])
+        parts.append(_gate_bin(sc, plan, k, *queries, gamma, w_logdet, buckets))
+    if not parts:
+        return _result(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), return_d2)
+    if len(parts) == 1 and plan.on_reports:  # one grid queried by tracks: sorted already
+        return _result(*parts[0], return_d2)
+    t_idx, r_idx, d2 = (parts[0] if len(parts) == 1 else
+                        [np.concatenate([p[c] for p in parts]) for c in range(3)])
+    return _result(*sorted_pairs(t_idx, r_idx, d2, nt, nr), return_d2)
 
 
 def _result(t_idx, r_idx, d2, return_d2):
@@ -258,9 +256,16 @@ def _slack(r: np.ndarray, coord_slack: float) -> np.ndarray:
     return r * (1.0 + RADIUS_SLACK) + coord_slack
 
 
-def _gate_bin(sc: Scene, plan: _Plan, k: int, reports: np.ndarray, gamma: float,
-              w_logdet: float, buckets):
-    """Exact pairs between every track and the reports of time bin k."""
+def _gate_bin(sc: Scene, plan: _Plan, k: int, reports: np.ndarray | slice, q_ids: np.ndarray,
+              q_rank: np.ndarray, gamma: float, w_logdet: float, buckets):
+    """Exact pairs between every track and the reports of time bin k (rows ``reports`` of the
+    scene), as (track id, report id, d²) grouped by the querying object's id, ascending.
+
+    The queries (every track when ``plan.on_reports``, else the bin's reports) are the
+    scene's rows in order (the caller put them in spatial order: the kernel is bound by memory
+    latency, and neighbouring queries then touch neighbouring cells); ``q_ids`` are their ids,
+    ``q_rank`` their ranks among them. Grid points are identified by their scene row, which
+    is their id (the gridded side is never permuted)."""
     tracks = np.arange(sc.tpos.shape[0])
     t_mid = plan.t_lo + (2 * k + 1) * plan.width
     w = plan.width * (1.0 + RADIUS_SLACK)
@@ -282,35 +287,29 @@ def _gate_bin(sc: Scene, plan: _Plan, k: int, reports: np.ndarray, gamma: float,
         rad[(g < 0.0) | ~np.isfinite(rad)] = -1.0
         cell = _bucket_cell(rad)
         grid = build_grid(sc.rpos[reports], reports, bid, nb, cell)
-        qpos = tpos_k
-    else:
-        reach = sig + w * plan.speed
-        bid, nb = _bucket_ids(reach, buckets)
-        sig_b = _bucket_max(sig, bid, nb)
-        spd_b = _bucket_max(plan.speed, bid, nb)
-        g_t = _bucket_max(plan.gamma_t, bid, nb)  # loosest track-side bound per bucket
-        g = np.minimum(g_r[:, None], g_t[None, :])
-        delta = np.abs(sc.rtime[reports] - t_mid) if sc.moving else np.zeros(reports.size)
-        rad = np.sqrt(np.maximum(g, 0.0) * (sig_b[None, :] ** 2 + lam_r[:, None]))
-        rad = _slack(rad + delta[:, None] * spd_b[None, :], plan.coord_slack)
-        rad[(g < 0.0) | ~np.isfinite(rad)] = -1.0
-        cell = _bucket_cell(rad)
-        grid = build_grid(tpos_k, tracks, bid, nb, cell)
-        qpos = sc.rpos[reports]
-    if plan.on_reports:
         rows = grid.members
-        t_loc, r_loc, d2 = query_grid(
-            np.ascontiguousarray(qpos), np.ascontiguousarray(rad), True, *_grid_args(grid),
+        return query_grid(
+            np.ascontiguousarray(tpos_k), rad, True, q_ids, q_rank, rows, *_grid_args(grid),
             sc.tpos, sc.tvel, sc.tcov, sc.ttime, sc.tq, take_rows(sc.rpos, rows),
             take_rows(sc.rcov, rows), sc.rtime[rows], sc.moving, gamma, w_logdet)
-        return t_loc, rows[r_loc], d2
+    reach = sig + w * plan.speed
+    bid, nb = _bucket_ids(reach, buckets)
+    sig_b = _bucket_max(sig, bid, nb)
+    spd_b = _bucket_max(plan.speed, bid, nb)
+    g_t = _bucket_max(plan.gamma_t, bid, nb)  # loosest track-side bound per bucket
+    g = np.minimum(g_r[:, None], g_t[None, :])
+    delta = np.abs(sc.rtime[reports] - t_mid) if sc.moving else np.zeros(lam_r.size)
+    rad = np.sqrt(np.maximum(g, 0.0) * (sig_b[None, :] ** 2 + lam_r[:, None]))
+    rad = _slack(rad + delta[:, None] * spd_b[None, :], plan.coord_slack)
+    rad[(g < 0.0) | ~np.isfinite(rad)] = -1.0
+    cell = _bucket_cell(rad)
+    grid = build_grid(tpos_k, tracks, bid, nb, cell)
     rows = grid.members
-    t_loc, r_loc, d2 = query_grid(
-        np.ascontiguousarray(qpos), np.ascontiguousarray(rad), False, *_grid_args(grid),
+    return query_grid(
+        sc.rpos[reports], rad, False, q_ids, q_rank, rows, *_grid_args(grid),
         take_rows(sc.tpos, rows), take_rows(sc.tvel, rows), take_rows(sc.tcov, rows),
-        sc.ttime[rows], sc.tq[rows], take_rows(sc.rpos, reports), take_rows(sc.rcov, reports),
-        sc.rtime[reports], sc.moving, gamma, w_logdet)
-    return rows[t_loc], reports[r_loc], d2
+        sc.ttime[rows], sc.tq[rows], sc.rpos[reports], sc.rcov[reports], sc.rtime[reports],
+        sc.moving, gamma, w_logdet)
 
 
 def _grid_args(grid):

@@ -22,9 +22,11 @@ from tracker.gating.reach import projected_cov_entry
 _MAX_AXIS_CELLS = 1 << 20
 # A dense cell->start table is used while it has at most this many cells per point.
 _DENSE_CELLS_PER_POINT = 8
-# Queries per thread below which a parallel launch costs more than it saves (on a loaded
-# machine a parallel region can wait tens of milliseconds for a descheduled worker).
-_QUERIES_PER_THREAD = 50_000
+# Work (queries + candidates scanned) per thread below which a parallel launch costs more than
+# it saves (on a loaded machine a parallel region can wait tens of ms for a descheduled worker).
+_WORK_PER_THREAD = 100_000
+# Runs of pairs of one track longer than this are merge-sorted instead of insertion-sorted.
+_INSERTION_MAX = 32
 
 
 @dataclass(frozen=True)
@@ -178,52 +180,100 @@ def _pair_test(t, r, tpos, tvel, tcov, ttime, tq, rpos, rcov, rtime, moving, gam
         v12 = projected_cov_entry(tcov, t, 1, 2, dt, q, dim, moving) + rcov[r, 1, 2]
         v22 = projected_cov_entry(tcov, t, 2, 2, dt, q, dim, moving) + rcov[r, 2, 2]
         dz = rpos[r, 2] - tpos[t, 2] - dt * tvel[t, 2]
-    d2, ld = sym_d2_logdet(v00, v01, v02, v11, v12, v22, dx, dy, dz, dim)
+    d2, ld = sym_d2_logdet(v00, v01, v02, v11, v12, v22, dx, dy, dz, dim, w_logdet != 0.0)
     return d2, d2 <= gamma - w_logdet * ld
 
 
-def query_grid(qpos, *args):
-    """:func:`query_grid_kernel` on as many threads as the number of queries warrants."""
+def query_grid(*args):
+    """Exact-gated pairs between queries and a grid's points (arguments of
+    :func:`_fill_kernel` after ``cand``), each pass on as many threads as its work warrants.
+
+    Three passes: count the candidates of each query (points in the cells it visits; no
+    tests), test each candidate once writing the passing pairs into the query's candidate
+    slots, and compact. The number of threads of the test pass follows from its candidates,
+    not from the number of queries (a few queries with huge radii are as much work as many
+    small ones)."""
+    nq = args[0].shape[0]
     before = numba.get_num_threads()
-    numba.set_num_threads(max(1, min(before, qpos.shape[0] // _QUERIES_PER_THREAD)))
     try:
-        return query_grid_kernel(qpos, *args)
+        numba.set_num_threads(_threads(nq, before))
+        cand = _scan_kernel(*args)
+        numba.set_num_threads(_threads(nq + int(cand[-1]), before))
+        return _fill_kernel(cand, *args)
     finally:
         numba.set_num_threads(before)
 
 
-@njit(cache=True, parallel=True)
-def query_grid_kernel(qpos, qrad, query_is_track, origin, cell, dims, seg, keys, dense, table_seg, table,
-               tpos, tvel, tcov, ttime, tq, rpos, rcov, rtime, moving, gamma, w_logdet):
-    """Exact-gated pairs between queries (rows of qpos, radius per bucket qrad (nq, K); a
-    negative radius skips the bucket) and the grid's points.
+def _threads(work: int, available: int) -> int:
+    return max(1, min(available, work // _WORK_PER_THREAD))
 
-    The query set's arrays (tracks when ``query_is_track``) are indexed by query row, the
-    point set's arrays by sorted grid position, so candidates in a cell are contiguous in
-    memory. Returns local (track row, report row, d^2), grouped by query.
-    """
+
+@njit(cache=True, parallel=True)
+def _scan_kernel(qpos, qrad, query_is_track, q_ids, q_rank, p_ids, origin, cell, dims, seg, keys, dense,
+                 table_seg, table, tpos, tvel, tcov, ttime, tq, rpos, rcov, rtime, moving, gamma,
+                 w_logdet):
+    """Offsets (nq + 1,) of each query's candidates (cumulative counts)."""
     nq = qpos.shape[0]
     counts = np.zeros(nq + 1, dtype=np.int64)
     no_i, no_f = np.empty(0, np.int64), np.empty(0)
     for i in prange(nq):
-        counts[i + 1] = _visit(i, qpos, qrad, query_is_track, origin, cell, dims, seg, keys,
-                               dense, table_seg, table, tpos, tvel, tcov, ttime, tq, rpos, rcov,
-                               rtime, moving, gamma, w_logdet, no_i, no_i, no_f, 0, False)
-    offs = np.cumsum(counts)
+        counts[i + 1] = _visit(i, qpos, qrad, query_is_track, q_ids, p_ids, origin, cell, dims,
+                               seg, keys, dense, table_seg, table, tpos, tvel, tcov, ttime, tq,
+                               rpos, rcov, rtime, moving, gamma, w_logdet, no_i, no_i, no_f, 0,
+                               _SCAN)
+    return np.cumsum(counts)
+
+
+@njit(cache=True, parallel=True)
+def _fill_kernel(cand, qpos, qrad, query_is_track, q_ids, q_rank, p_ids, origin, cell, dims, seg, keys,
+                 dense, table_seg, table, tpos, tvel, tcov, ttime, tq, rpos, rcov, rtime, moving,
+                 gamma, w_logdet):
+    """Exact-gated pairs between queries (rows of qpos, radius per bucket qrad (nq, K); a
+    negative radius skips the bucket) and the grid's points; ``cand`` from :func:`_scan_kernel`.
+
+    The query set's arrays (tracks when ``query_is_track``) are indexed by query row, the
+    point set's arrays by sorted grid position, so candidates in a cell are contiguous in
+    memory. Returns (track id, report id, d^2) with the ids taken from ``q_ids`` (per query row)
+    and ``p_ids`` (per grid position), grouped by query (by report id within a track query).
+    """
+    nq = qpos.shape[0]
+    buf_t = np.empty(cand[-1], dtype=np.int64)
+    buf_r = np.empty(cand[-1], dtype=np.int64)
+    buf_d2 = np.empty(cand[-1])
+    found = np.zeros(nq, dtype=np.int64)
+    for i in prange(nq):
+        found[i] = _visit(i, qpos, qrad, query_is_track, q_ids, p_ids, origin, cell, dims,
+                              seg, keys, dense, table_seg, table, tpos, tvel, tcov, ttime, tq,
+                              rpos, rcov, rtime, moving, gamma, w_logdet, buf_t, buf_r, buf_d2,
+                              cand[i], _FILL)
+        if query_is_track:  # in parallel here, so that sorted_pairs finds sorted runs
+            _sort_run(buf_r, buf_d2, cand[i], cand[i] + found[i])
+    offs = np.zeros(nq + 1, dtype=np.int64)
+    for i in range(nq):
+        offs[q_rank[i] + 1] = found[i]
+    offs = np.cumsum(offs)
     out_t = np.empty(offs[-1], dtype=np.int64)
     out_r = np.empty(offs[-1], dtype=np.int64)
     out_d2 = np.empty(offs[-1])
     for i in prange(nq):
-        _visit(i, qpos, qrad, query_is_track, origin, cell, dims, seg, keys, dense, table_seg,
-               table, tpos, tvel, tcov, ttime, tq, rpos, rcov, rtime, moving, gamma, w_logdet,
-               out_t, out_r, out_d2, offs[i], True)
+        at = offs[q_rank[i]]
+        for k in range(found[i]):
+            out_t[at + k] = buf_t[cand[i] + k]
+            out_r[at + k] = buf_r[cand[i] + k]
+            out_d2[at + k] = buf_d2[cand[i] + k]
     return out_t, out_r, out_d2
 
 
+# What _visit does with the points in the cells it visits.
+_SCAN, _FILL = 0, 1
+
+
 @njit(cache=True, inline="always")
-def _visit(i, qpos, qrad, query_is_track, origin, cell, dims, seg, keys, dense, table_seg, table,
-           tpos, tvel, tcov, ttime, tq, rpos, rcov, rtime, moving, gamma, w_logdet, out_t, out_r,
-           out_d2, at, write):
+def _visit(i, qpos, qrad, query_is_track, q_ids, p_ids, origin, cell, dims, seg, keys, dense,
+           table_seg, table, tpos, tvel, tcov, ttime, tq, rpos, rcov, rtime, moving, gamma,
+           w_logdet, out_t, out_r, out_d2, at, mode):
+    """Query i against the grid: the number of candidates (``_SCAN``), or the number of exact
+    pairs, written from ``at`` on (``_FILL``)."""
     dim = qpos.shape[1]
     n_buckets = cell.shape[0]
     found = 0
@@ -250,15 +300,17 @@ def _visit(i, qpos, qrad, query_is_track, origin, cell, dims, seg, keys, dense, 
                 else:
                     s = _lower_bound(keys, seg[b], seg[b + 1], k_lo)
                     e = _lower_bound(keys, s, seg[b + 1], k_hi + 1)
+                if mode == _SCAN:
+                    found += e - s
+                    continue
                 for m in range(np.int64(s), np.int64(e)):
                     t, rep = (i, m) if query_is_track else (m, i)
                     d2, ok = _pair_test(t, rep, tpos, tvel, tcov, ttime, tq, rpos, rcov, rtime,
                                         moving, gamma, w_logdet)
                     if ok:
-                        if write:
-                            out_t[at + found] = t
-                            out_r[at + found] = rep
-                            out_d2[at + found] = d2
+                        out_t[at + found] = q_ids[i] if query_is_track else p_ids[m]
+                        out_r[at + found] = p_ids[m] if query_is_track else q_ids[i]
+                        out_d2[at + found] = d2
                         found += 1
     return found
 
@@ -297,15 +349,66 @@ def spatial_order(pos: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True)
-def sort_pairs(t, r, n_t):
-    """Permutation sorting pairs by (t, r): counting sort on t, insertion sort within a t."""
+def sort_pairs(t, r, n_t, n_r):
+    """Permutation sorting pairs (t in [0, n_t), r in [0, n_r)) by (t, r), as
+    ``np.lexsort((r, t))`` for pairs without duplicates (:func:`sorted_pairs`)."""
+    return _sort_pairs(t, r, n_t, n_r)[0]
+
+
+@njit(cache=True)
+def sorted_pairs(t, r, d2, n_t, n_r):
+    """Pairs (t, r, d2) in (t, r) order, in O(pairs log(pairs per track)).
+
+    A counting sort on t, then per track :func:`_sort_run` on its reports (runs the kernel sorted
+    already cost one comparison per pair). When most pairs sit in long unsorted runs, two
+    counting sorts (r, then stably t: O(pairs + n_t + n_r)) replace the per-track sorts."""
+    order, r_sorted, start = _sort_pairs(t, r, n_t, n_r)
+    t_sorted = np.empty(t.shape[0], np.int64)
+    for k in range(n_t):
+        t_sorted[start[k]:start[k + 1]] = k
+    return t_sorted, r_sorted, d2[order]
+
+
+@njit(cache=True)
+def _sort_pairs(t, r, n_t, n_r):
+    """(permutation, r permuted, start offset of each t) of :func:`sorted_pairs`."""
     order, start = counting_order(t, n_t)
-    for k in prange(n_t):
-        for a in range(start[k] + 1, start[k + 1]):
-            x = order[a]
-            b = a - 1
-            while b >= start[k] and r[order[b]] > r[x]:
-                order[b + 1] = order[b]
-                b -= 1
-            order[b + 1] = x
-    return order
+    keys = r[order]
+    unsorted_long = 0
+    for k in range(n_t):
+        s, e = start[k], start[k + 1]
+        if e - s > _INSERTION_MAX:
+            for a in range(s + 1, e):
+                if keys[a] < keys[a - 1]:
+                    unsorted_long += e - s
+                    break
+    if unsorted_long > t.shape[0] // 2:
+        by_r = counting_order(r, n_r)[0]
+        order = by_r[counting_order(t[by_r], n_t)[0]]
+        return order, r[order], start
+    for k in range(n_t):
+        _sort_run(keys, order, start[k], start[k + 1])
+    return order, keys, start
+
+
+@njit(cache=True)
+def _sort_run(keys, sat, s, e):
+    """Sort keys[s:e] ascending in place, moving sat[s:e] alongside: insertion sort for short
+    or sorted runs, merge sort (O(k log k)) otherwise."""
+    if e - s > _INSERTION_MAX:
+        for a in range(s + 1, e):
+            if keys[a] < keys[a - 1]:
+                o = np.argsort(keys[s:e], kind="mergesort")
+                keys[s:e] = keys[s:e][o]
+                sat[s:e] = sat[s:e][o]
+                return
+        return
+    for a in range(s + 1, e):
+        x, y = keys[a], sat[a]
+        b = a - 1
+        while b >= s and keys[b] > x:
+            keys[b + 1] = keys[b]
+            sat[b + 1] = sat[b]
+            b -= 1
+        keys[b + 1] = x
+        sat[b + 1] = y

@@ -1,0 +1,96 @@
+"""The grid module's pair sort against numpy's lexsort, and gating scenes whose output is dense
+or dominated by one track (the pair sort's and the kernel's worst cases) against the brute force."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from tests.tracker.gating.test_oracle import assert_same_pairs, brute_force, random_covs
+from tracker.gating.gate import gate
+from tracker.gating.grid import sort_pairs, sorted_pairs
+
+
+@st.composite
+def pair_sets(draw):
+    """Distinct (t, r) pairs: runs per track from empty to long, sorted, reversed or shuffled."""
+    n_t, n_r = draw(st.integers(1, 40)), draw(st.integers(1, 300))
+    seed = draw(st.integers(0, 2**31))
+    rng = np.random.default_rng(seed)
+    sizes = rng.integers(0, draw(st.sampled_from([3, 40, 300])), n_t)
+    t = np.repeat(np.arange(n_t), np.minimum(sizes, n_r))
+    r = np.concatenate([rng.choice(n_r, min(k, n_r), replace=False) for k in sizes])
+    r = r.astype(np.int64)
+    style = draw(st.sampled_from(["shuffled", "sorted_runs", "reversed_runs", "grouped"]))
+    if style == "sorted_runs":
+        o = np.lexsort((r, t))
+        t, r = t[o], r[o]
+    elif style == "reversed_runs":
+        o = np.lexsort((-r, t))
+        t, r = t[o], r[o]
+    perm = rng.permutation(t.size) if style == "shuffled" else np.arange(t.size)
+    if style == "grouped":  # tracks in a random order, each run contiguous
+        perm = np.argsort(rng.permutation(n_t)[t], kind="stable")
+    return t[perm], r[perm], n_t, n_r
+
+
+@settings(max_examples=80, deadline=None)
+@given(pair_sets())
+def test_sort_pairs_is_lexsort(pairs):
+    t, r, n_t, n_r = pairs
+    want = np.lexsort((r, t))
+    assert np.array_equal(sort_pairs(t, r, n_t, n_r), want)
+    d2 = np.random.default_rng(1).random(t.size)
+    ts, rs, ds = sorted_pairs(t, r, d2, n_t, n_r)
+    assert np.array_equal(ts, t[want]) and np.array_equal(rs, r[want])
+    assert np.array_equal(ds, d2[want])
+
+
+def test_sort_pairs_of_one_long_reversed_run():
+    """One track with 300,000 pairs in reverse order: the insertion sort's worst case (~45 G
+    moves, minutes), a fraction of a second for the merge sort of long runs."""
+    k = 300_000
+    t, r = np.zeros(k, np.int64), np.arange(k, dtype=np.int64)[::-1].copy()
+    assert np.array_equal(sort_pairs(t, r, 1, k), np.arange(k)[::-1])
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("orientation", ["auto", "tracks"])
+def test_one_track_gating_every_report(dim, orientation):
+    """The issue's repro, smaller: one track's gate holds every report."""
+    rng = np.random.default_rng(0)
+    n, m = 41, 3000
+    tm = rng.uniform(0, 1e4, (n, dim))
+    tc = random_covs(rng, n, dim, 10.0, 30.0)
+    tm[0], tc[0] = 5000.0, np.eye(dim) * 1e10
+    rm = rng.uniform(0, 1e4, (m, dim))
+    rc = random_covs(rng, m, dim, 3.0, 10.0)
+    t_idx, r_idx = gate(tm, tc, rm, rc, threshold=9.21, orientation=orientation)
+    want_d2, limit = brute_force(tm, tc, rm, rc, gamma=9.21)
+    assert np.count_nonzero(t_idx == 0) == m
+    assert_same_pairs(t_idx, r_idx, want_d2, limit)
+
+
+@pytest.mark.parametrize("orientation", ["auto", "tracks"])
+def test_everything_at_one_point(orientation):
+    """Every pair gates (dense output): tracks and reports at one point."""
+    n, m = 150, 200
+    tc, rc = np.tile(np.eye(2), (n, 1, 1)), np.tile(np.eye(2) * 2.0, (m, 1, 1))
+    t_idx, r_idx, d2 = gate(np.zeros((n, 2)), tc, np.zeros((m, 2)), rc, threshold=1.0,
+                            orientation=orientation, return_d2=True)
+    assert np.array_equal(t_idx, np.repeat(np.arange(n), m))
+    assert np.array_equal(r_idx, np.tile(np.arange(m), n)) and np.all(d2 == 0.0)
+
+
+def test_radii_over_four_decades():
+    """Gate sigmas from 1 m to 10 km on both sides (radius buckets, huge queries)."""
+    rng = np.random.default_rng(7)
+    n, m = 300, 400
+    tm, rm = rng.uniform(0, 2e5, (n, 2)), rng.uniform(0, 2e5, (m, 2))
+    tc, rc = random_covs(rng, n, 2, 1.0, 1e4), random_covs(rng, m, 2, 1.0, 1e4)
+    for orientation in ("auto", "tracks"):
+        t_idx, r_idx = gate(tm, tc, rm, rc, threshold=9.21, orientation=orientation)
+        assert t_idx.size > 100
+        assert_same_pairs(t_idx, r_idx, *brute_force(tm, tc, rm, rc, gamma=9.21))
