@@ -372,7 +372,8 @@ class _Chain:
             gi = np.concatenate([[i], rest[others][~side[others]]]).astype(np.int64)
             gj = np.concatenate([[j], rest[others][side[others]]]).astype(np.int64)
             ll = self._set_ll([gi, np.append(gi, k), gj, np.append(gj, k)])
-            wi, wj = ll[1] - ll[0], ll[3] - ll[2]
+            with np.errstate(invalid="ignore"):  # a group of zero prior mass: -inf - -inf, no weight
+                wi, wj = np.nan_to_num(ll[1] - ll[0], nan=-math.inf), np.nan_to_num(ll[3] - ll[2], nan=-math.inf)
             top = max(wi, wj)
             if top == -math.inf:
                 return side, -math.inf  # k fits neither group (prior zero): the proposal is void
