@@ -15,7 +15,12 @@ from pathlib import Path
 
 from pipeline.build.region import build_region_prior
 from pipeline.config.region import load_config
-from tracker.study.calibration import DESIGNS, calibration_markdown, calibration_study, reliability_figure
+from tracker.study.calibration import (
+    DESIGNS,
+    calibration_markdown,
+    calibration_study,
+    reliability_figure,
+)
 
 HERE = Path(__file__).resolve().parent
 REGION = HERE.parent / "terrain_data" / "region.toml"
