@@ -33,7 +33,7 @@ def d2(a: np.ndarray, A: np.ndarray, z: np.ndarray, V: np.ndarray) -> np.ndarray
     return np.einsum("nmi,nmij,nmj->nm", r, np.linalg.inv(S), r)
 
 
-@settings(max_examples=25, deadline=None)
+@settings(max_examples=15, deadline=None)
 @given(seed=st.integers(0, 2**31 - 1), n=st.integers(1, 300), m=st.integers(1, 40))
 def test_candidates_contain_every_gated_cluster(seed: int, n: int, m: int) -> None:
     """After random placements, moves and removals, every live cluster a report gates with is a candidate."""
@@ -93,8 +93,8 @@ def test_index_path_gives_the_chain_of_gating_all_clusters() -> None:
     """The production chain (index candidates) walks the same chain as gating all live clusters."""
     from bench.bench_tracker import scenario, synthetic_prior
 
-    prior = synthetic_prior(8000.0)
-    rep = scenario(prior, 600, 6000, seed=2)
+    prior = synthetic_prior(4000.0)
+    rep = scenario(prior, 150, 1500, seed=2)
     init = np.arange(len(rep))  # all singletons: many reports move
     runs = []
     for all_live in (False, True):
@@ -106,4 +106,4 @@ def test_index_path_gives_the_chain_of_gating_all_clusters() -> None:
         moved = [ch.sweep(1.0, rng) for _ in range(2)]
         runs.append((ch.labels.copy(), ch.lp, moved))
     np.testing.assert_array_equal(runs[0][0], runs[1][0])
-    assert runs[0][1] == runs[1][1] and runs[0][2] == runs[1][2] and runs[0][2][0] > 1000
+    assert runs[0][1] == runs[1][1] and runs[0][2] == runs[1][2] and runs[0][2][0] > 200

@@ -48,7 +48,7 @@ def test_simulate_model_draws_from_the_model(prior: TerrainPrior) -> None:
     wp = window_prior(prior, keep)
     mask = window_mask(prior, keep)
     assert wp.density[~mask].max() == 0.0 and wp.density.sum() * prior.grid.cell_area == pytest.approx(1.0)
-    counts = [len(simulate_model(wp, 7.0, 30, s).targets) for s in range(300)]
+    counts = [len(simulate_model(wp, 7.0, 30, s).targets) for s in range(200)]
     assert np.mean(counts) == pytest.approx(7.0, abs=0.5) and np.var(counts) == pytest.approx(7.0, rel=0.3)
     sc = simulate_model(wp, 7.0, 30, 1)
     x, y = sc.targets[:, 0], sc.targets[:, 1]
@@ -59,7 +59,7 @@ def test_simulate_model_draws_from_the_model(prior: TerrainPrior) -> None:
 
 
 def test_small_calibration_study_and_figure(prior: TerrainPrior, tmp_path) -> None:
-    st = calibration_study(prior, 2, "model", n_targets=40, n_reports=25, burn_in=5, samples=30, split_merge=1)
+    st = calibration_study(prior, 2, "model", n_targets=40, n_reports=25, burn_in=5, samples=20, split_merge=1)
     assert st["pairs"] == sum(r["n"] for r in st["bins"]) > 0
     assert st["bins_with_pairs"] >= st["bins_in_band"] >= 0
     assert "| pairs |" in calibration_markdown(st)
