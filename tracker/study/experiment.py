@@ -347,8 +347,11 @@ def run_experiment(
 
 
 def score_matrix(results: pd.DataFrame, algorithm: str, column: str = "score") -> np.ndarray:
-    """(data sets, τ) array of one algorithm's ``column`` (:func:`algorithm_name`: "TT", "TT batch")."""
-    table = results[results["algorithm"] == algorithm].pivot(index="seed", columns="tau", values=column)
+    """(data sets, τ) array of one algorithm's ``column`` (:func:`algorithm_name`: "TT", "TT batch").
+    A table without an ``algorithm`` column holds greedy runs only (results written before
+    ``methods``, hand-built tables): there the algorithm is the variant."""
+    key = "algorithm" if "algorithm" in results else "variant"
+    table = results[results[key] == algorithm].pivot(index="seed", columns="tau", values=column)
     return table.sort_index().sort_index(axis=1).to_numpy()
 
 
