@@ -44,7 +44,8 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from pipeline.prior import TerrainPrior
-from tracker.association.batch_kernels import apply_moves, select_round
+from tracker.association.batch_kernels import apply_moves, earlier_dependency, select_round
+from tracker.association.cluster_index import ClusterIndex, lambda_max
 from tracker.association.greedy import (
     DEFAULT_GAMMA,
     associate,
@@ -217,6 +218,9 @@ class _Chain:
         self.logL[:n] = self._ll(self.cnt[:n], self.P[:n], self.h[:n], self.q[:n], self.ld[:n], self._masks(np.arange(n)))
         self.cb, self.cB = np.zeros((K, 2)), np.tile(np.eye(2), (K, 1, 1))
         self.cb[:n], self.cB[:n] = self._gaussians(self.P[:n], self.h[:n])
+        self.lam_v = lambda_max(rs.V)
+        self.index = ClusterIndex.for_reports(rs.z - rs.origin, self.lam_v, K, owner.gamma)
+        self.index.update(np.arange(n), self.cb[:n], self.cB[:n])
         self.free = np.zeros(K, np.int64)
         self.free[: K - n] = np.arange(K - 1, n - 1, -1)  # LOW ids popped first: deterministic ids
         self.istate = np.array([n, K - n, K], np.int64)
@@ -269,7 +273,7 @@ class _Chain:
         m = U.size
         zc = rs.z[U] - rs.origin
         V = rs.V[U]
-        live = np.flatnonzero(self.cnt > 0)
+        live = self.index.candidates(zc, self.lam_v[U])  # a superset of the gated clusters
         b_l, B_l = self.cb[live], self.cB[live]
         c_idx, r_idx = self.o.gater(b_l, B_l, zc, V, threshold=gam)
         cl, pos = live[np.asarray(c_idx, np.int64)], np.asarray(r_idx, np.int64)
@@ -293,21 +297,9 @@ class _Chain:
         t_ord = np.argsort(t_pos, kind="stable")
         t_ptr = np.concatenate([[0], np.cumsum(np.bincount(t_pos, minlength=m))])
         # possible new clusters of each report ({i}, own \ i, C ∪ i) and who they gate
-        Pc = self.P[cl] + rs.vinv[U[pos]]
-        hc = self.h[cl] + rs.hv[U[pos]]
-        bc, Bc = self._gaussians(Pc, hc)
-        pot_owner = np.concatenate([np.arange(m), mi, pos])
-        pot_m = np.concatenate([zc, bm, bc])
-        pot_c = np.concatenate([V, Bm, Bc])
-        p_idx, q_idx = self.o.gater(pot_m, pot_c, zc, V, threshold=gam)
-        a, b = pot_owner[np.asarray(p_idx, np.int64)], np.asarray(q_idx, np.int64)
-        ne = a != b
-        d_src = np.concatenate([a[ne], b[ne]])
-        d_dst = np.concatenate([b[ne], a[ne]])
-        d_ord = np.argsort(d_src, kind="stable")
-        d_ptr = np.concatenate([[0], np.cumsum(np.bincount(d_src, minlength=m))])
+        earlier = earlier_dependency(zc, V, self.lam_v[U], gam, mi, bm, Bm, pos, cl, self.P, self.h, U, rs.vinv, rs.hv)
         self.o.stamp += 1
-        sel = select_round(t_ptr, t_cl[t_ord], d_ptr, d_dst[d_ord], self.o.blocked(self.K), self.o.stamp)
+        sel = select_round(t_ptr, t_cl[t_ord], earlier, self.o.blocked(self.K), self.o.stamp)
         # options of the selected reports: own (if gated and not alone) and gated clusters, by cluster id
         s_pos = np.flatnonzero(sel)
         opt_sel = sel[pos]
@@ -348,8 +340,10 @@ class _Chain:
             self.s_cache, kind, param, rs.vinv, rs.hv, rs.qv, rs.ldv)
         self.lp += d_lp
         changed = np.unique(np.concatenate([own[s_pos], o_cl, self.labels[U[s_pos]]]))
+        self.index.remove(changed[self.cnt[changed] == 0])
         changed = changed[self.cnt[changed] > 0]
         self.cb[changed], self.cB[changed] = self._gaussians(self.P[changed], self.h[changed])
+        self.index.update(changed, self.cb[changed], self.cB[changed])
         return sel, moved
 
     # -- split-merge (Jain & Neal 2004), restricted Gibbs launch
@@ -378,7 +372,8 @@ class _Chain:
             gi = np.concatenate([[i], rest[others][~side[others]]]).astype(np.int64)
             gj = np.concatenate([[j], rest[others][side[others]]]).astype(np.int64)
             ll = self._set_ll([gi, np.append(gi, k), gj, np.append(gj, k)])
-            wi, wj = ll[1] - ll[0], ll[3] - ll[2]
+            with np.errstate(invalid="ignore"):  # a group of zero prior mass: -inf - -inf, no weight
+                wi, wj = np.nan_to_num(ll[1] - ll[0], nan=-math.inf), np.nan_to_num(ll[3] - ll[2], nan=-math.inf)
             top = max(wi, wj)
             if top == -math.inf:
                 return side, -math.inf  # k fits neither group (prior zero): the proposal is void

@@ -61,20 +61,16 @@ def choose(w: np.ndarray, beta: float, u: float) -> int:
 
 
 @njit(cache=True)
-def select_round(touched_ptr, touched_cl, dep_ptr, dep_pos, blocked, stamp):
+def select_round(touched_ptr, touched_cl, earlier, blocked, stamp):
     """Reports of a round (positions 0..m-1 in scan order) whose move can be applied now with
     sequential-scan semantics: none of its touched clusters (own and gated) is touched by an earlier
     report of the round, and no earlier report's possible new clusters gate it or vice versa
-    (``dep_pos`` lists, per position, the positions it depends on). ``blocked[c] == stamp`` marks
-    clusters touched earlier in this round."""
+    (``earlier``, from :func:`earlier_dependency`). ``blocked[c] == stamp`` marks clusters touched
+    earlier in this round."""
     m = touched_ptr.size - 1
     sel = np.zeros(m, dtype=np.bool_)
     for p in range(m):
-        ok = True
-        for e in range(dep_ptr[p], dep_ptr[p + 1]):
-            if dep_pos[e] < p:
-                ok = False
-                break
+        ok = not earlier[p]
         if ok:
             for e in range(touched_ptr[p], touched_ptr[p + 1]):
                 if blocked[touched_cl[e]] == stamp:
@@ -158,3 +154,91 @@ def apply_moves(reps, opt_ptr, opt_cl, opt_delta, opt_ll, own_minus_ll, single_l
         d_lp += log_s_cached(s_cache, s_kind, s_param, istate[0], K) - log_s_cached(s_cache, s_kind, s_param, n, K)
         moved += 1
     return d_lp, moved
+
+
+@njit(cache=True)
+def _d2(rx: float, ry: float, s00: float, s01: float, s11: float) -> float:
+    """d² = rᵀ S⁻¹ r of a 2-D offset r under a symmetric 2×2 S."""
+    det = s00 * s11 - s01 * s01
+    return (s11 * rx * rx - 2.0 * s01 * rx * ry + s00 * ry * ry) / det
+
+
+@njit(cache=True)
+def _info_gaussian(p00: float, p01: float, p11: float, h0: float, h1: float):
+    """(b, B) of information sums (P, h): B = P⁻¹, b = B h, as (b0, b1, B00, B01, B11)."""
+    det = p00 * p11 - p01 * p01
+    B00, B01, B11 = p11 / det, -p01 / det, p00 / det
+    return B00 * h0 + B01 * h1, B01 * h0 + B11 * h1, B00, B01, B11
+
+
+@njit(cache=True)
+def _mark(owner, bx, by, B00, B01, B11, zc, V, lam_v_max, gamma, lo, cell, nx, ny, start, members, earlier) -> None:
+    """Mark the gate links of one possible new cluster (mean b, covariance B) of round position ``owner``
+    with the round's reports q (d² of z_q − b under B + V_q ≤ γ): the later of the two has an earlier
+    dependency."""
+    lam_b = 0.5 * (B00 + B11) + math.sqrt(0.25 * (B00 - B11) ** 2 + B01 * B01)
+    reach = math.sqrt(gamma * (lam_b + lam_v_max)) * (1.0 + 1e-6)
+    x0 = min(max(int(math.floor((bx - reach - lo[0]) / cell)), 0), nx - 1)
+    x1 = min(max(int(math.floor((bx + reach - lo[0]) / cell)), 0), nx - 1)
+    y0 = min(max(int(math.floor((by - reach - lo[1]) / cell)), 0), ny - 1)
+    y1 = min(max(int(math.floor((by + reach - lo[1]) / cell)), 0), ny - 1)
+    g = gamma * (1.0 + 1e-9) + 1e-9  # conservative: an extra link only delays a report to a later round
+    for iy in range(y0, y1 + 1):
+        for ix in range(x0, x1 + 1):
+            k = iy * nx + ix
+            for e in range(start[k], start[k + 1]):
+                q = members[e]
+                if q == owner:
+                    continue
+                if _d2(zc[q, 0] - bx, zc[q, 1] - by, B00 + V[q, 0, 0], B01 + V[q, 0, 1], B11 + V[q, 1, 1]) <= g:
+                    earlier[max(q, owner)] = True
+
+
+@njit(cache=True)
+def earlier_dependency(zc, V, lam_v, gamma, multi_pos, bm, Bm, pair_pos, pair_cl, P, h, reps, vinv, hv):
+    """Per round position p (scan order): True when a possible new cluster of an earlier position gates
+    p's report, or one of p's gates an earlier report. The possible new clusters of position a are
+    {a} (z_a, V_a), its own cluster without it (``bm``/``Bm`` at ``multi_pos``), and each gated cluster
+    C with it (information sums P[C] + V⁻¹, h[C] + V⁻¹z of report ``reps[a]``, for the (``pair_pos``,
+    ``pair_cl``) pairs). Positions in m relative to the chain's origin. The same links as gating every
+    possible new cluster against the round's reports, without forming the pairs."""
+    m = zc.shape[0]
+    earlier = np.zeros(m, dtype=np.bool_)
+    if m == 0:
+        return earlier
+    lo = np.array([zc[:, 0].min(), zc[:, 1].min()])
+    span_x = zc[:, 0].max() - lo[0]
+    span_y = zc[:, 1].max() - lo[1]
+    lam_v_max = lam_v.max()
+    cell = max(math.sqrt(gamma * 2.0 * lam_v_max), math.sqrt(max(span_x * span_y, 1e-18) / (4.0 * m)), 1e-9)
+    nx = int(span_x / cell) + 1
+    ny = int(span_y / cell) + 1
+    key = np.empty(m, np.int64)
+    for q in range(m):
+        ix = min(int((zc[q, 0] - lo[0]) / cell), nx - 1)
+        iy = min(int((zc[q, 1] - lo[1]) / cell), ny - 1)
+        key[q] = iy * nx + ix
+    start = np.zeros(nx * ny + 1, np.int64)
+    for q in range(m):
+        start[key[q] + 1] += 1
+    for k in range(nx * ny):
+        start[k + 1] += start[k]
+    fill = start[:-1].copy()
+    members = np.empty(m, np.int64)
+    for q in range(m):
+        members[fill[key[q]]] = q
+        fill[key[q]] += 1
+    for a in range(m):
+        _mark(a, zc[a, 0], zc[a, 1], V[a, 0, 0], V[a, 0, 1], V[a, 1, 1], zc, V, lam_v_max, gamma, lo, cell,
+              nx, ny, start, members, earlier)
+    for t in range(multi_pos.size):
+        a = multi_pos[t]
+        _mark(a, bm[t, 0], bm[t, 1], Bm[t, 0, 0], Bm[t, 0, 1], Bm[t, 1, 1], zc, V, lam_v_max, gamma, lo, cell,
+              nx, ny, start, members, earlier)
+    for t in range(pair_pos.size):
+        a, c = pair_pos[t], pair_cl[t]
+        j = reps[a]
+        bx, by, B00, B01, B11 = _info_gaussian(P[c, 0, 0] + vinv[j, 0, 0], 0.5 * (P[c, 0, 1] + P[c, 1, 0] + vinv[j, 0, 1] + vinv[j, 1, 0]),
+                                               P[c, 1, 1] + vinv[j, 1, 1], h[c, 0] + hv[j, 0], h[c, 1] + hv[j, 1])
+        _mark(a, bx, by, B00, B01, B11, zc, V, lam_v_max, gamma, lo, cell, nx, ny, start, members, earlier)
+    return earlier

@@ -1,6 +1,7 @@
 """Studies of the tracker: simulated scenes (targets from the prior or real locations), metrics (Score eq. 18,
-GOSPA, OSPA, purity), Appendix B comparisons, the paper's experiment (local or on Dask), learn-here-track-there
-on held-out real targets (:mod:`tracker.study.heldout`, the one tracker layer that imports ``pipeline.learn``), regimes, the 1-D example (:mod:`tracker.study.oned`,
+GOSPA, OSPA, purity), Appendix B comparisons, the batch sampler's calibration, the paper's experiment (local or
+on Dask), learn-here-track-there on held-out real targets (:mod:`tracker.study.heldout`, the one tracker layer
+that imports ``pipeline.learn``), regimes, the 1-D example (:mod:`tracker.study.oned`,
 imported as a module) and their figures. Names load on first use: matplotlib, pandas and dask only when asked."""
 
 from common.exports import lazy_exports
@@ -9,6 +10,13 @@ _EXPORTS = {
     "best_tau_index": "compare",
     "prob_better": "compare",
     "compare": "compare",
+    "calibration_study": "calibration",
+    "calibration_markdown": "calibration",
+    "reliability": "calibration",
+    "reliability_figure": "calibration",
+    "simulate_model": "calibration",
+    "expected_in_window": "calibration",
+    "window_prior": "calibration",
     "comparison_table": "compare",
     "parse_taus": "experiment",
     "ExperimentConfig": "experiment",

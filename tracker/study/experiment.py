@@ -30,15 +30,19 @@ from tqdm.auto import tqdm
 
 from common.atomic import atomic_paths
 from pipeline.prior import TerrainPrior
+from tracker.association.batch import BatchAssociator, batch_estimate, log_posterior
 from tracker.association.greedy import associate, perfect_estimate
-from tracker.integrate import METHODS, Integrator, integrate_checked
+from tracker.integrate import METHODS as INTEGRATORS
+from tracker.integrate import Integrator, integrate_checked
 from tracker.models.sfunc import ExpS, PoissonS, SModel
-from tracker.study.compare import best_tau_index, comparison_table, prob_better
+from tracker.study.compare import best_tau_index, compare, comparison_table, prob_better
 from tracker.study.metrics import ScoreGram, gospa, mixture_weights, ospa, posterior_means, purity
 from tracker.study.plots import PAPER_TABLE, table_markdown, write_figures
 from tracker.study.simulate import AirborneSensor, file_targets, simulate, simulate_points
 
 VARIANTS = ("UU", "UT", "TT")
+METHODS = ("greedy", "batch")
+"""Association methods: paper 1's greedy tracker, and the batch MAP search started from it."""
 
 
 def parse_taus(spec: str) -> tuple[float, ...]:
@@ -77,6 +81,11 @@ class ExperimentConfig:
     """Pick each data set's ``n_targets`` among this vector file's locations in the window
     (:func:`~tracker.study.simulate.simulate_points`) instead of drawing them from the prior."""
     targets_layer: str | None = None
+    methods: tuple[str, ...] = ("greedy",)
+    """Association methods (:data:`METHODS`); batch is the MAP search from greedy's partition, with
+    ``batch_anneal`` annealed sweeps per restart and ``batch_restarts`` restarts from singletons."""
+    batch_anneal: int = 10
+    batch_restarts: int = 1
 
     def __post_init__(self) -> None:
         bad = [v for v in self.variants if v not in VARIANTS]
@@ -88,8 +97,11 @@ class ExperimentConfig:
             raise ValueError("taus must not be empty")
         if self.poisson_mu is not None:
             PoissonS(self.poisson_mu)  # validates mu
-        if self.integrator not in METHODS:
-            raise ValueError(f"integrator {self.integrator!r} unknown; choose from {METHODS}")
+        if self.integrator not in INTEGRATORS:
+            raise ValueError(f"integrator {self.integrator!r} unknown; choose from {INTEGRATORS}")
+        bad = [m for m in self.methods if m not in METHODS]
+        if bad or not self.methods:
+            raise ValueError(f"methods {bad or '(none)'} unknown; choose from {METHODS}")
 
     @property
     def seeds(self) -> list[int]:
@@ -221,19 +233,16 @@ def run_dataset(prior_path: str | os.PathLike, seed: int, config: ExperimentConf
     if config.poisson_mu is not None:
         settings.append(("poisson", float("nan"), PoissonS(config.poisson_mu)))
     evaluations = []
-    runs: dict[tuple[str, SModel], object] = {}
+    runs: dict[tuple[str, str, SModel], _Run] = {}
     for variant in config.variants:
         # UT associates exactly as UU (paper sec. 6); only its reported estimate differs.
         assoc_variant = "UU" if variant == "UT" else variant
         for label, tau, s_model in settings:
-            res = runs.get((assoc_variant, s_model))
-            if res is None:
-                res = runs[(assoc_variant, s_model)] = associate(
-                    prior, reports, assoc_variant, s_model=s_model, off_prior="skip", integrator=integrator
-                )
-            est = res.estimate
-            members = comps.register(res.assignments, est.means, est.covs, variant != "UU")
-            evaluations.append((variant, label, tau, res, members))
+            for method in config.methods:
+                res = _run(runs, method, prior, reports, assoc_variant, s_model, integrator, config)
+                est = res.estimate
+                members = comps.register(res.assignments, est.means, est.covs, variant != "UU")
+                evaluations.append((variant, method, label, tau, res, members))
 
     gram = comps.gram(prior, integrator, (np.concatenate([members, ref]) for *_, members in evaluations))
     n = len(comps.means)
@@ -245,7 +254,7 @@ def run_dataset(prior_path: str | os.PathLike, seed: int, config: ExperimentConf
     records = []
     # Point metrics once per distinct (association, estimate kind): τ runs often agree.
     assoc_metrics: dict[tuple[bytes, bool], dict] = {}
-    for variant, label, tau, res, members in evaluations:
+    for variant, method, label, tau, res, members in evaluations:
         s, err = gram.score(mixture_weights(n, members) + w_ref)
         key = (res.assignments.tobytes(), variant != "UU")
         if key not in assoc_metrics:
@@ -260,11 +269,54 @@ def run_dataset(prior_path: str | os.PathLike, seed: int, config: ExperimentConf
                 "skipped": int((~on).sum()),
             }
         records.append({
-            "seed": int(seed), "variant": variant, "s_model": label, "tau": tau, "score": s, "score_error_bound": err,
+            "seed": int(seed), "variant": variant, "method": method, "algorithm": algorithm_name(variant, method),
+            "s_model": label, "tau": tau, "score": s, "score_error_bound": err, "log_posterior": res.log_posterior,
             "nd_hat": int(res.n_detected), "nd": nd, "nd_abs_error": abs(int(res.n_detected) - nd),
             **assoc_metrics[key], "n_targets": int(len(sc.targets)),
         })
     return records
+
+
+def algorithm_name(variant: str, method: str) -> str:
+    """The results' ``algorithm`` column: the variant for greedy ("TT"), "TT batch" for batch."""
+    return variant if method == "greedy" else f"{variant} {method}"
+
+
+@dataclass(frozen=True)
+class _Run:
+    """One association of a data set: ``assignments`` (K,) (−1: skipped), the fused Gaussians
+    ``estimate`` (row q = hypothesis q), and ln p(Λ|Z) + const under the associating variant and S."""
+
+    assignments: np.ndarray
+    estimate: object
+    n_detected: int
+    log_posterior: float
+
+
+def _run(runs: dict, method: str, prior: TerrainPrior, reports, variant: str, s_model: SModel,
+         integrator: Integrator, config: ExperimentConfig) -> _Run:
+    """The (memoised) association of ``reports`` by ``method``; batch starts from greedy's partition of
+    the reports greedy kept on the prior."""
+    key = (method, variant, s_model)
+    if key in runs:
+        return runs[key]
+    if method == "greedy":
+        res = associate(prior, reports, variant, s_model=s_model, off_prior="skip", integrator=integrator)
+        on = res.assignments >= 0
+        lp = log_posterior(prior, reports.subset(np.flatnonzero(on)), res.assignments[on], s_model, variant, integrator)
+        runs[key] = _Run(res.assignments, res.estimate, int(res.n_detected), lp)
+        return runs[key]
+    greedy = _run(runs, "greedy", prior, reports, variant, s_model, integrator, config)
+    kept = np.flatnonzero(greedy.assignments >= 0)
+    sub = reports.subset(kept)
+    res = BatchAssociator(prior, variant, s_model=s_model, anneal=config.batch_anneal, restarts=config.batch_restarts,
+                          seed=0, integrator=integrator).fit(sub, init=greedy.assignments[kept])
+    assignments = np.full(len(reports), -1, np.int64)
+    assignments[kept] = res.labels
+    # the Gaussian parts only: a component's terrain flag applies r when it is scored
+    est = batch_estimate(prior, sub, res.labels, "UU", integrator)
+    runs[key] = _Run(assignments, est, res.n_detected, res.log_posterior)
+    return runs[key]
 
 
 def _worker_init() -> None:
@@ -306,12 +358,15 @@ def run_experiment(
         rows.extend(records)
         bar.update(1)
     bar.close()
-    return pd.DataFrame(rows).sort_values(["seed", "variant", "tau"], kind="stable").reset_index(drop=True)
+    return pd.DataFrame(rows).sort_values(["seed", "method", "variant", "tau"], kind="stable").reset_index(drop=True)
 
 
-def score_matrix(results: pd.DataFrame, variant: str, column: str = "score") -> np.ndarray:
-    """(data sets, τ) array of one variant's ``column``."""
-    table = results[results["variant"] == variant].pivot(index="seed", columns="tau", values=column)
+def score_matrix(results: pd.DataFrame, algorithm: str, column: str = "score") -> np.ndarray:
+    """(data sets, τ) array of one algorithm's ``column`` (:func:`algorithm_name`: "TT", "TT batch").
+    A table without an ``algorithm`` column holds greedy runs only (results written before
+    ``methods``, hand-built tables): there the algorithm is the variant."""
+    key = "algorithm" if "algorithm" in results else "variant"
+    table = results[results[key] == algorithm].pivot(index="seed", columns="tau", values=column)
     return table.sort_index().sort_index(axis=1).to_numpy()
 
 
@@ -320,7 +375,8 @@ def summarise(results: pd.DataFrame, config: ExperimentConfig) -> dict:
     Poisson rows, each variant's exact-S score and P(exact S better than the best τ)."""
     poisson = results[results["s_model"] == "poisson"]
     results = results[results["s_model"] == "exp"]
-    variants = [v for v in VARIANTS if v in set(results["variant"])]
+    present = set(results["algorithm"])
+    variants = [a for m in METHODS for v in VARIANTS if (a := algorithm_name(v, m)) in present]
     taus = sorted(results["tau"].unique())
     per_variant = {}
     scores = {}
@@ -344,7 +400,7 @@ def summarise(results: pd.DataFrame, config: ExperimentConfig) -> dict:
             "mean_nd_abs_error_by_tau": nd_err.mean(axis=0).tolist(),
         }
         if len(poisson):
-            p = poisson[poisson["variant"] == v].sort_values("seed")
+            p = poisson[poisson["algorithm"] == v].sort_values("seed")
             per_variant[v].update({
                 "poisson_mean_score_x10^4.5": float(p["score"].mean() * 10**4.5),
                 "poisson_mean_nd_abs_error": float(p["nd_abs_error"].mean()),
@@ -362,7 +418,48 @@ def summarise(results: pd.DataFrame, config: ExperimentConfig) -> dict:
         "table_normal": comparison_table(scores, "normal", variants),
         "table_t": comparison_table(scores, "t", variants),
         "paper_table": PAPER_TABLE,
+        "batch_vs_greedy": batch_vs_greedy(results, poisson, scores),
     }
+
+
+def batch_vs_greedy(results: pd.DataFrame, poisson: pd.DataFrame, scores: dict[str, np.ndarray]) -> dict:
+    """Appendix B for batch against greedy, per variant run by both: P(batch better) on mean Score and
+    on |N̂_D − N_D|, each at its own best τ (normal and t forms) and, with Poisson rows, with the exact S;
+    ln p(Λ|Z) of batch minus greedy per (data set, S) (``min_log_posterior_gain`` ≥ 0 when batch is never
+    below greedy); for UU, the share of the UU → TT greedy gap in mean Score (best τ) that batch UU closes."""
+    out: dict[str, dict] = {}
+    for v in VARIANTS:
+        b, g = algorithm_name(v, "batch"), v
+        if b not in scores or g not in scores:
+            continue
+        nd_b, nd_g = score_matrix(results, b, "nd_abs_error"), score_matrix(results, g, "nd_abs_error")
+        gain = (score_matrix(results, b, "log_posterior") - score_matrix(results, g, "log_posterior")).ravel()
+        row = {
+            "prob_better_score_best_tau": compare(scores[b], scores[g], "normal"),
+            "prob_better_score_best_tau_t": compare(scores[b], scores[g], "t"),
+            "prob_better_nd_error_best_tau": compare(nd_b, nd_g, "normal"),
+            "prob_better_nd_error_best_tau_t": compare(nd_b, nd_g, "t"),
+            "mean_score_x10^4.5": [float(scores[x][:, best_tau_index(scores[x])].mean() * 10**4.5) for x in (b, g)],
+            "mean_nd_abs_error_best": [float(n.mean(axis=0).min()) for n in (nd_b, nd_g)],
+            "min_log_posterior_gain": float(gain.min()),
+            "mean_log_posterior_gain": float(gain.mean()),
+        }
+        if len(poisson):
+            pb = poisson[poisson["algorithm"] == b].sort_values("seed")
+            pg = poisson[poisson["algorithm"] == g].sort_values("seed")
+            row.update({
+                "prob_better_score_exact_s": prob_better(pb["score"].to_numpy() - pg["score"].to_numpy(), "normal"),
+                "prob_better_nd_error_exact_s": prob_better(pb["nd_abs_error"].to_numpy() - pg["nd_abs_error"].to_numpy(), "normal"),
+                "mean_score_exact_s_x10^4.5": [float(x["score"].mean() * 10**4.5) for x in (pb, pg)],
+                "mean_nd_abs_error_exact_s": [float(x["nd_abs_error"].mean()) for x in (pb, pg)],
+                "min_log_posterior_gain_exact_s": float((pb["log_posterior"].to_numpy() - pg["log_posterior"].to_numpy()).min()),
+            })
+        out[v] = row
+    if "UU" in out and "TT" in scores:
+        best = {a: float(scores[a][:, best_tau_index(scores[a])].mean()) for a in ("UU", "UU batch", "TT")}
+        gap = best["UU"] - best["TT"]
+        out["UU"]["share_of_uu_tt_gap_closed"] = (best["UU"] - best["UU batch"]) / gap if gap else None
+    return out
 
 
 def write_results(results: pd.DataFrame, out_dir: str | os.PathLike) -> str:

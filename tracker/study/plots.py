@@ -1,6 +1,7 @@
 """Figures like paper 1's Figures 11–15 (mean score and mean |N̂_D − N_D| versus τ) and Table 1 as text.
 
-Inputs are the experiment's long-format results table (one row per data set, variant and τ).
+Inputs are the experiment's long-format results table (one row per data set, algorithm and τ; the
+``algorithm`` column is the variant for greedy, "TT batch" for batch).
 Scores are drawn scaled by 10^4.5 per metre, as in the paper.
 """
 
@@ -22,7 +23,7 @@ SCORE_SCALE = 10**4.5
 PAPER_TABLE = {"TT": {"UT": 0.63, "UU": 0.99}, "UT": {"TT": 0.37, "UU": 0.99}, "UU": {"TT": 0.005, "UT": 0.0}}
 
 
-def _save(fig: plt.Figure, path: Path) -> Path:
+def save_figure(fig: plt.Figure, path: Path) -> Path:
     with atomic_paths(path) as (tmp,):
         fig.savefig(tmp, dpi=110)
     plt.close(fig)
@@ -31,7 +32,7 @@ def _save(fig: plt.Figure, path: Path) -> Path:
 
 def _errorbar_panel(ax: plt.Axes, results: pd.DataFrame, variants: Sequence[str], column: str, scale: float) -> None:
     for variant in variants:
-        g = results[results["variant"] == variant].groupby("tau")[column]
+        g = results[results["algorithm"] == variant].groupby("tau")[column]
         mean, std = g.mean() * scale, g.std(ddof=1).fillna(0.0) * scale
         ax.errorbar(mean.index, mean.values, yerr=std.values, capsize=2, marker="o", ms=3, lw=1, label=variant)
     ax.set_xlabel("τ")
@@ -52,14 +53,14 @@ def score_figure(results: pd.DataFrame, variant: str, path: Path, title: str = "
     results, exact = _split(results)
     fig, ax = plt.subplots(figsize=(5, 3.4))
     _errorbar_panel(ax, results, [variant], "score", SCORE_SCALE)
-    mean_exact = exact.loc[exact["variant"] == variant, "score"].mean() * SCORE_SCALE
-    if exact["variant"].eq(variant).any():
+    mean_exact = exact.loc[exact["algorithm"] == variant, "score"].mean() * SCORE_SCALE
+    if exact["algorithm"].eq(variant).any():
         ax.axhline(mean_exact, ls="--", color="0.3", lw=1, label="exact S, Poisson(μ)")
         ax.legend()
     ax.set_ylabel("Score × 10^4.5 (1/m)")
     ax.set_title(title or f"Average scores, {variant}")
     fig.tight_layout()
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def nd_error_figure(results: pd.DataFrame, variants: Sequence[str], path: Path, title: str = "") -> Path:
@@ -70,7 +71,7 @@ def nd_error_figure(results: pd.DataFrame, variants: Sequence[str], path: Path, 
     ax.set_ylabel("|N̂_D − N_D|")
     ax.set_title(title or f"Average absolute error of N̂_D, {' and '.join(variants)}")
     fig.tight_layout()
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def overview_figure(results: pd.DataFrame, variants: Sequence[str], path: Path, title: str = "") -> Path:
@@ -81,7 +82,7 @@ def overview_figure(results: pd.DataFrame, variants: Sequence[str], path: Path, 
     fig, axes = plt.subplots(2, 2, figsize=(9, 6.5))
     for ax, (column, scale, label) in zip(axes.ravel(), panels, strict=True):
         for variant in variants:
-            mean = results[results["variant"] == variant].groupby("tau")[column].mean() * scale
+            mean = results[results["algorithm"] == variant].groupby("tau")[column].mean() * scale
             ax.plot(mean.index, mean.values, marker="o", ms=3, lw=1, label=variant)
         ax.set_xlabel("τ")
         ax.set_ylabel(label)
@@ -90,7 +91,7 @@ def overview_figure(results: pd.DataFrame, variants: Sequence[str], path: Path, 
     if title:
         fig.suptitle(title)
     fig.tight_layout()
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def table_markdown(table: Mapping[str, Mapping[str, float | None]], paper: bool = True) -> str:
@@ -115,15 +116,17 @@ def _titled(title: str, what: str) -> str:
 
 
 def write_figures(results: pd.DataFrame, out_dir: Path, prefix: str = "", title: str = "") -> list[Path]:
-    """All figures for one experiment into ``out_dir`` (PNG); returns their paths."""
+    """All figures for one experiment into ``out_dir`` (PNG); returns their paths. Curves are per
+    ``algorithm`` ("TT" greedy, "TT batch"); batch shares greedy's |N̂_D − N_D| panels."""
     out_dir = Path(out_dir)
-    variants = [v for v in ("UU", "UT", "TT") if v in set(results["variant"])]
-    paths = [score_figure(results, v, out_dir / f"{prefix}score_{v}.png", _titled(title, f"average scores, {v}"))
+    names = [f"{v}{m}" for m in ("", " batch") for v in ("UU", "UT", "TT")]
+    variants = [v for v in names if v in set(results["algorithm"])]
+    paths = [score_figure(results, v, out_dir / f"{prefix}score_{v.replace(' ', '_')}.png", _titled(title, f"average scores, {v}"))
              for v in variants]
-    groups = [g for g in (["UU", "UT"], ["TT"]) if set(g) & set(variants)]
+    groups = [g for g in (["UU", "UT", "UU batch", "UT batch"], ["TT", "TT batch"]) if set(g) & set(variants)]
     for g in groups:
         present = [v for v in g if v in variants]
-        paths.append(nd_error_figure(results, present, out_dir / f"{prefix}nd_error_{'_'.join(present)}.png",
+        paths.append(nd_error_figure(results, present, out_dir / f"{prefix}nd_error_{'_'.join(present).replace(' ', '_')}.png",
                                      _titled(title, f"|N̂_D − N_D|, {' and '.join(present)}")))
     paths.append(overview_figure(results, variants, out_dir / f"{prefix}overview.png", title))
     return paths
@@ -167,4 +170,4 @@ def tracks_figure(
     ax.set_ylabel("y (m)")
     ax.set_title(title or f"reports and estimated targets ({ellipse_prob:.0%} ellipses)")
     ax.legend(loc="upper right", fontsize=8)
-    return _save(fig, Path(path))
+    return save_figure(fig, Path(path))

@@ -198,3 +198,49 @@ def test_rebuilt_prior_at_the_same_path_is_reread(tmp_path) -> None:
     np.testing.assert_allclose(again[0, 0] / again[0, -1], 3.0, rtol=1e-6)
     with pytest.raises(PriorError, match="missing.tif"):
         _load_prior(str(tmp_path / "missing.tif"))
+
+
+def test_run_dataset_with_batch_matches_a_direct_batch_run(prior_path: str) -> None:
+    """``methods=("greedy", "batch")``: batch rows come from the batch MAP search started at greedy's
+    partition, score like a direct scoring of that partition, and never have a lower ln p(Λ|Z)."""
+    from tracker.association.batch import BatchAssociator, batch_estimate, log_posterior
+
+    config = _config(taus=(-1.0,), variants=("UU", "TT"), methods=("greedy", "batch"), poisson_mu=150.0,
+                     batch_anneal=4, batch_restarts=0)
+    records = pd.DataFrame(run_dataset(prior_path, 5, config))
+    assert set(records.algorithm) == {"UU", "TT", "UU batch", "TT batch"} and len(records) == 8
+    prior = TerrainPrior.read(prior_path)
+    sc = simulate(prior, 5, config.n_targets, config.n_reports, config.region_m, config.keep_fraction, config.sensor)
+    ref = perfect_estimate(prior, sc.reports)
+    for _, rec in records[records.method == "batch"].iterrows():
+        s_model = PoissonS(150.0) if rec.s_model == "poisson" else ExpS(rec.tau)
+        g = associate(prior, sc.reports, rec.variant, s_model=s_model).assignments  # fresh: no shared cache
+        res = BatchAssociator(prior, rec.variant, s_model=s_model, anneal=4, restarts=0).fit(sc.reports, init=g)
+        est = batch_estimate(prior, sc.reports, res.labels, "UU")
+        expected = score(prior, est.means, est.covs, rec.variant != "UU", ref.means, ref.covs, True)
+        assert rec.score == pytest.approx(expected, rel=1e-9, abs=1e-12)
+        assert rec.nd_hat == res.n_detected
+        assert rec.log_posterior == pytest.approx(log_posterior(prior, sc.reports, res.labels, s_model, rec.variant), abs=1e-6)
+        greedy = records[(records.method == "greedy") & (records.variant == rec.variant) & (records.s_model == rec.s_model)]
+        assert rec.log_posterior >= greedy.log_posterior.iloc[0] - 1e-9
+
+
+def test_cli_experiment_with_methods(prior_path: str, tmp_path, capsys) -> None:
+    from tracker.cli import main
+
+    out = tmp_path / "cli"
+    argv = ["experiment", "--prior", prior_path, "--datasets", "2", "--reports", "15", "--tau", "-2,0",
+            "--targets", "60", "--variants", "UU,TT", "--methods", "greedy,batch", "--workers", "1", "--quiet",
+            "--out", str(out)]
+    assert main(argv) == 0
+    results = pd.read_parquet(out / "results.parquet")
+    assert set(results.algorithm) == {"UU", "TT", "UU batch", "TT batch"}
+    summary = json.loads((out / "summary.json").read_text())
+    assert set(summary["table_normal"]) == {"UU", "TT", "UU batch", "TT batch"}
+    assert set(summary["batch_vs_greedy"]) == {"UU", "TT"}
+    gain = summary["batch_vs_greedy"]["TT"]["min_log_posterior_gain"]
+    assert gain >= -1e-9 and 0.0 <= summary["batch_vs_greedy"]["TT"]["prob_better_score_best_tau"] <= 1.0
+    assert (out / "score_TT_batch.png").exists() and "TT batch" in (out / "table1.md").read_text()
+    assert "TT batch vs greedy" in capsys.readouterr().out
+    assert main(["experiment", "--prior", prior_path, "--methods", "greedy,mcmc", "--out", str(out)]) == 1
+    assert "mcmc" in capsys.readouterr().err
