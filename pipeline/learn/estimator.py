@@ -65,6 +65,8 @@ SPATIAL_BIN = 0.05
 Z95 = 1.959963984540054
 DEFENSIVE_BLOCK_M = 2000.0
 """Block side (metres) of the folds that choose the defensive ε when ``spatial_block`` is None."""
+BASIS_FLOOR = 1e-12
+"""Smallest value of a basis form's written table relative to its maximum."""
 SPLINE_LAMBDAS = tuple(10.0 ** np.arange(-2, 5))
 """Candidate λ of a spline term's difference penalty when its smoothing is chosen by AIC."""
 
@@ -512,8 +514,10 @@ class PriorEstimator(BaseEstimator):
                 self.stderr_[t.feature] = dict(zip(keys, np.asarray(se_lr, float).tolist(), strict=True))
                 self.ci_[t.feature] = {k: (float(a), float(c)) for k, a, c in zip(keys, lo, hi, strict=True)}
                 g_edges = t.lo + t.bin_width * np.arange(t.n_levels)
-                fine = p.cell_lut(th)[:-1]
-                table_terms[t.feature] = BinnedLikelihood(from_scale(t.scale, g_edges).tolist(), np.exp(fine - fine.max()).tolist(), t.nodata)
+                # floored at BASIS_FLOOR of the maximum: a fitted curve never makes a structural zero
+                # (a steep tail fitted to few points would underflow the prior's float32 cells)
+                fine = np.maximum(p.cell_lut(th)[:-1] - p.cell_lut(th)[:-1].max(), np.log(BASIS_FLOOR))
+                table_terms[t.feature] = BinnedLikelihood(from_scale(t.scale, g_edges).tolist(), np.exp(fine).tolist(), t.nodata)
             else:
                 self.likelihoods_[t.feature] = {"gamma": float(th[0]), "alpha": p.alpha}
                 self.stderr_[t.feature] = {"gamma": float(se[0]), "alpha": 0.0}

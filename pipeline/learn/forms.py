@@ -8,8 +8,8 @@ profiled out of the Poisson-process likelihood, so only differences of log r are
 - ``increasing`` / ``decreasing``: log r = ±Σ_k θ_k·h_k(g) with θ_k >= 0 and hinges
   h_k(g) = clip(g − κ_k, 0, κ_{k+1} − κ_k) between equally spaced knots κ_0 = g_lo .. κ_K = g_hi:
   a piecewise-linear monotone function of g (any monotone function is the limit as K grows).
-- ``spline``: cubic B-splines on K equally spaced knot intervals over [g_lo, g_hi], the first
-  coefficient fixed at 0 (identifiability), and the P-spline difference penalty
+- ``spline``: f(g) − f(g_lo), f = Σ_j c_j B_j cubic B-splines on K equally spaced knot intervals
+  over [g_lo, g_hi], c_0 fixed at 0 (identifiability), and the P-spline difference penalty
   ½·λ·Σ (Δ² c)² (Eilers & Marx 1996); λ is chosen by AIC with effective degrees of freedom.
 
 The fit never needs more than B at the fine bins' mean values (cells) and at the points' exact
@@ -67,7 +67,9 @@ def basis(form: str, g: np.ndarray, kappa: np.ndarray) -> np.ndarray:
         step = kappa[1] - kappa[0]
         t = np.concatenate([kappa[0] - step * np.arange(k, 0, -1), kappa, kappa[-1] + step * np.arange(1, k + 1)])
         full = BSpline.design_matrix(gg, t, k, extrapolate=False).toarray()
-        out = full[:, 1:]  # the first coefficient is fixed at 0
+        at_lo = BSpline.design_matrix(kappa[:1], t, k, extrapolate=False).toarray()
+        # f(g) − f(g_lo) with f = Σ c_j B_j and c_0 = 0: zero at g_lo, and no constant (Σ_j B_j = 1)
+        out = (full - at_lo)[:, 1:]
     else:
         raise ValueError(f"form must be one of {BASIS_FORMS}, got {form!r}")
     out = np.array(out, dtype=np.float64)
