@@ -7,6 +7,7 @@ scores) and ``<stem>.fit.png`` (fitted likelihoods against empirical ratios).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -102,6 +103,8 @@ class LearnReport:
 
 def _jsonable(obj):
     """NaN/inf -> None, numpy -> Python, tuples -> lists (strict JSON)."""
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return _jsonable(dataclasses.asdict(obj))
     if isinstance(obj, dict):
         return {str(k): _jsonable(v) for k, v in obj.items()}
     if isinstance(obj, list | tuple):
