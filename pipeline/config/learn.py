@@ -57,7 +57,7 @@ class FormSpec:
     scale: str = "linear"
     knots: int | None = None
     smoothing: float | None = None
-    bins: int = 400
+    bins: int = 200
     edges: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:

@@ -67,7 +67,7 @@ DEFENSIVE_BLOCK_M = 2000.0
 """Block side (metres) of the folds that choose the defensive ε when ``spatial_block`` is None."""
 BASIS_FLOOR = 1e-12
 """Smallest value of a basis form's written table relative to its maximum."""
-SPLINE_LAMBDAS = tuple(10.0 ** np.arange(-2, 5))
+SPLINE_LAMBDAS = tuple(10.0 ** np.arange(-1, 4))
 """Candidate λ of a spline term's difference penalty when its smoothing is chosen by AIC."""
 
 
@@ -347,11 +347,11 @@ class PriorEstimator(BaseEstimator):
         used = pstats.subset(keep)
         if self.defensive == "cv" and groups is None:
             raise ValueError("defensive='cv' needs the points' block folds; fit_stats takes a number or None")
-        params, self.smoothing_aic_ = self._choose_smoothing(cells, used, params)
+        params, self.smoothing_aic_, results = self._choose_smoothing(cells, used, params)
         terms = [p.term for p in params]
         cells = dataclasses.replace(cells, terms=tuple(terms))
         used = dataclasses.replace(used, terms=tuple(terms))
-        results = self._solve(cells, used, params)
+        results = results or self._solve(cells, used, params)
         x = np.concatenate([r.x for r in results])
         cov = _block_diag([r.cov for r in results])
         full = Objective(cells, used, params, list(range(len(terms))), self.penalty_sd, self.smooth_sd)
@@ -388,10 +388,11 @@ class PriorEstimator(BaseEstimator):
             )
         return self
 
-    def _solve(self, cells: CellStats, used: PointStats, params: list[TermParams]) -> list[FitResult]:
-        """The optimisation: all terms jointly (ml) or each alone on its marginal (naive)."""
+    def _solve(self, cells: CellStats, used: PointStats, params: list[TermParams],
+               x0: np.ndarray | None = None) -> list[FitResult]:
+        """The optimisation: all terms jointly (ml, from ``x0`` when given) or each alone on its marginal (naive)."""
         if self.method == "ml":
-            return [fit(Objective(cells, used, params, list(range(len(params))), self.penalty_sd, self.smooth_sd))]
+            return [fit(Objective(cells, used, params, list(range(len(params))), self.penalty_sd, self.smooth_sd), x0)]
         return [fit(Objective(cells, used, params, [k], self.penalty_sd, self.smooth_sd)) for k in range(len(params))]
 
     def _form(self, name: str) -> FormSpec | None:
@@ -399,31 +400,36 @@ class PriorEstimator(BaseEstimator):
         return spec if spec is None or isinstance(spec, FormSpec) else FormSpec(**spec)
 
     def _choose_smoothing(self, cells: CellStats, used: PointStats,
-                          params: list[TermParams]) -> tuple[list[TermParams], dict[str, dict[float, float]]]:
+                          params: list[TermParams]) -> tuple[list[TermParams], dict[str, dict[float, float]], list | None]:
         """λ of each spline term without a fixed ``smoothing``: the candidate in :data:`SPLINE_LAMBDAS`
         with the least AIC = −2ℓ + 2·edf, edf = K − tr(Cov·λP) the term's effective degrees of
-        freedom (one sweep over the terms, the others at their current λ). Returns the AIC per λ."""
+        freedom (one sweep over the terms, the others at their current λ; each fit starts from the
+        previous λ's). Returns the parameters, the AIC per λ and the chosen fit (None: no choice made)."""
         params = list(params)
         aic: dict[str, dict[float, float]] = {}
+        chosen = None
         offsets = np.concatenate([[0], np.cumsum([p.size for p in params])]).astype(int)
         for k, p in enumerate(params):
             spec = self._form(p.term.feature)
             if p.term.form != "spline" or spec is None or spec.smoothing is not None:
                 continue
-            scores = {}
-            for lam in SPLINE_LAMBDAS:
+            scores, fits, x = {}, {}, None
+            for lam in SPLINE_LAMBDAS[::-1]:  # smooth to rough: each fit starts from the smoother one
                 trial = list(params)
                 trial[k] = _with_lambda(p, lam)
-                res = self._solve(cells, used, trial)
+                res = self._solve(cells, used, trial, x)
                 x = np.concatenate([r.x for r in res])
+                fits[float(lam)] = res
                 cov = np.nan_to_num(_block_diag([r.cov for r in res]))
                 sl = slice(offsets[k], offsets[k + 1])
                 edf = p.size - float(np.trace(cov[sl, sl] @ trial[k].pen))
                 ll = Objective(cells, used, trial, list(range(len(trial))), self.penalty_sd, self.smooth_sd).loglik(x)
                 scores[float(lam)] = -2.0 * ll + 2.0 * edf
-            params[k] = _with_lambda(p, min(scores, key=scores.get))
+            best = min(scores, key=scores.get)
+            params[k] = _with_lambda(p, best)
             aic[p.term.feature] = scores
-        return params, aic
+            chosen = fits[best]
+        return params, aic, chosen
 
     def _cross_fit_epsilon(self, cells: CellStats, used: PointStats, params: list[TermParams], fold: np.ndarray) -> float:
         """ε of the defensive mixture maximising Σ_i w_i log((1 − ε)·p_{−f(i)}(x_i) + ε·u), p_{−f} the

@@ -204,4 +204,6 @@ def block_cv(
         np.array([len(te) for te in cv["indices"]["test"]]),
         np.array([k.bandwidth if k is not None else np.nan for k in kdes], dtype=np.float64), float(block_size),
         int(len(points)), int(len(points) - usable.sum()),
+        # which points each fold held out (indices into ``points``), so peers can be scored on the same folds
+        {"test_index": [np.flatnonzero(usable)[te] for te in cv["indices"]["test"]]},
     )

@@ -357,11 +357,13 @@ def _start_nonlinear(obj: Objective, x0: np.ndarray) -> np.ndarray:
     return x
 
 
-def fit(obj: Objective) -> FitResult:
-    """Minimise −(ℓ − penalty) with L-BFGS-B; covariance = inverse observed information."""
+def fit(obj: Objective, x0: np.ndarray | None = None) -> FitResult:
+    """Minimise −(ℓ − penalty) with L-BFGS-B from ``x0`` (default: the terms' starts, with a search
+    for the road and KDE terms); covariance = inverse observed information."""
     if obj.n == 0:
         raise ValueError("no points left to fit (all off the grid or on structural zeros?)")
-    x0 = _start_nonlinear(obj, obj.x0)
+    x0 = _start_nonlinear(obj, obj.x0) if x0 is None else np.clip(x0, *np.array(
+        [(-np.inf if lo is None else lo, np.inf if hi is None else hi) for lo, hi in obj.bounds]).T.reshape(2, -1))
     if x0.size == 0:
         return FitResult(x0, np.zeros((0, 0)), obj.loglik(x0), 0.0, True, "no free parameters", 0, np.zeros(0, bool))
     # one BLAS thread: L-BFGS-B's small dense products are slower threaded (x9 under a loaded machine)
