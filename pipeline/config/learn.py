@@ -15,6 +15,7 @@
     bandwidths_m = [40, 80, 160, 320, 640]   # KDE candidates (default: 2 cells .. 1/5 of the grid)
     hybrid = true               # also fit and evaluate terrain × (α + (1-α)·KDE/uniform)^γ
     defensive = "cv"            # p = (1-ε)·p_model + ε·uniform: ε by cross-fitted ML ("cv"), a number, or "none"
+    temper = "cv"               # p ∝ r^τ before the mixture: τ by the same cross-fitted ML, a number, or "none" (default)
     weights = "count"           # a column of the targets giving each point's weight (--weights overrides)
 
     [learn.forms.road_distance]     # a feature's form (overrides its [likelihood] table's)
@@ -39,7 +40,7 @@ from pipeline.prior.likelihood import read_toml
 
 _KEYS = {
     "features", "on_zero", "soften", "penalty_sd", "smooth_sd", "bin_width", "flexible",
-    "folds", "block_size_m", "bandwidths_m", "hybrid", "forms", "defensive", "weights",
+    "folds", "block_size_m", "bandwidths_m", "hybrid", "forms", "defensive", "temper", "weights",
 }
 FORMS = ("categorical", "road", "bins", "linear", "increasing", "decreasing", "spline")
 _FORM_KEYS = {"form", "scale", "knots", "smoothing", "bins", "edges"}
@@ -57,7 +58,7 @@ class FormSpec:
     scale: str = "linear"
     knots: int | None = None
     smoothing: float | None = None
-    bins: int = 200
+    bins: int = 100
     edges: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
@@ -104,6 +105,7 @@ class LearnConfig:
     hybrid: bool = True
     forms: dict[str, FormSpec] = field(default_factory=dict)
     defensive: float | str | None = "cv"
+    temper: float | str | None = None
     weights: str | None = None
 
 
@@ -189,6 +191,14 @@ def parse_learn(d: dict, source: Path) -> LearnConfig:
             kw["defensive"] = float(v)
         else:
             raise ConfigError(f"{source}: learn.defensive: must be \"cv\", \"none\" or a number in [0, 1), got {v!r}")
+    if "temper" in d:
+        v = d["temper"]
+        if v in ("none", "cv"):
+            kw["temper"] = None if v == "none" else "cv"
+        elif isinstance(v, int | float) and not isinstance(v, bool) and 0.05 <= v <= 1.5:
+            kw["temper"] = float(v)
+        else:
+            raise ConfigError(f"{source}: learn.temper: must be \"cv\", \"none\" or a number in [0.05, 1.5], got {v!r}")
     if "weights" in d:
         if not (isinstance(d["weights"], str) and d["weights"]):
             raise ConfigError(f"{source}: learn.weights: expected a column name of the targets, got {d['weights']!r}")

@@ -31,6 +31,7 @@ import numpy as np
 from scipy import optimize
 from sklearn.base import BaseEstimator, clone
 from sklearn.utils.validation import check_is_fitted
+from threadpoolctl import threadpool_limits
 
 from pipeline.config.learn import FormSpec
 from pipeline.features.stack import Feature, FeatureStack
@@ -63,6 +64,8 @@ SPATIAL = "spatial_kde"
 SPATIAL_BIN = 0.05
 """Fine-bin width of the log-KDE feature; r varies at most by a factor exp(γ·0.05) across a bin."""
 Z95 = 1.959963984540054
+TEMPER_MIN = 0.05
+"""Smallest tempering exponent τ (τ → 0 is the uniform prior over the support)."""
 DEFENSIVE_BLOCK_M = 2000.0
 """Block side (metres) of the folds that choose the defensive ε when ``spatial_block`` is None."""
 BASIS_FLOOR = 1e-12
@@ -205,6 +208,9 @@ class PriorEstimator(BaseEstimator):
         the weighted log-likelihood of each point under the model fitted without its block fold
         (``spatial_folds`` folds of ``spatial_block`` metres, 2000 m when None), cross-fitted on the
         same statistics (``defensive_`` is the ε used).
+    temper : the tempered model p ∝ r^τ (before the mixture): None (τ = 1), a number, or ``"cv"``: τ
+        chosen with ε on the same cross-fitted likelihood (``temper_``). τ < 1 flattens a model whose
+        effects, learned in the training blocks, are too sharp elsewhere.
     """
 
     def __init__(
@@ -226,6 +232,7 @@ class PriorEstimator(BaseEstimator):
         n_bins: int = 8,
         forms: dict | None = None,
         defensive: float | str | None = None,
+        temper: float | str | None = None,
     ) -> None:
         self.features = features
         self.template = template
@@ -244,6 +251,7 @@ class PriorEstimator(BaseEstimator):
         self.n_bins = n_bins
         self.forms = forms
         self.defensive = defensive
+        self.temper = temper
 
     def __sklearn_clone__(self) -> PriorEstimator:
         """A clone sharing the feature stack: it is the data the points live on, not a setting, and
@@ -264,6 +272,9 @@ class PriorEstimator(BaseEstimator):
         d = self.defensive
         if not (d is None or d == "cv" or (isinstance(d, int | float) and not isinstance(d, bool) and 0 <= d < 1)):
             raise ValueError(f"defensive must be None, 'cv' or a number in [0, 1), got {d!r}")
+        t = self.temper
+        if not (t is None or t == "cv" or (isinstance(t, int | float) and not isinstance(t, bool) and TEMPER_MIN <= t <= 1.5)):
+            raise ValueError(f"temper must be None, 'cv' or a number in [{TEMPER_MIN}, 1.5], got {t!r}")
 
     def fit(self, X: np.ndarray, y: None = None, sample_weight: np.ndarray | None = None) -> PriorEstimator:
         """Fit to points X (N, 2) in metres in the grid's CRS (``y`` is ignored). Points off the grid are
@@ -304,7 +315,7 @@ class PriorEstimator(BaseEstimator):
         self.stack_ = stack
         self.n_features_in_ = 2
         groups = None
-        if self.defensive == "cv":
+        if "cv" in (self.defensive, self.temper):
             groups = block_folds(pts, features.grid.bounds[:2], self.spatial_block or DEFENSIVE_BLOCK_M, self.spatial_folds)
         return self._fit_from_stats(cells, pstats, t0, c0, pass_times, groups)
 
@@ -345,8 +356,8 @@ class PriorEstimator(BaseEstimator):
         ]
         keep, counts = _usable(pstats, params, soften is not None)
         used = pstats.subset(keep)
-        if self.defensive == "cv" and groups is None:
-            raise ValueError("defensive='cv' needs the points' block folds; fit_stats takes a number or None")
+        if "cv" in (self.defensive, self.temper) and groups is None:
+            raise ValueError("defensive='cv' / temper='cv' need the points' block folds; fit_stats takes numbers or None")
         params, self.smoothing_aic_, results = self._choose_smoothing(cells, used, params)
         terms = [p.term for p in params]
         cells = dataclasses.replace(cells, terms=tuple(terms))
@@ -374,8 +385,10 @@ class PriorEstimator(BaseEstimator):
         self.fit_seconds_ = time.perf_counter() - t0
         self.pass_seconds_, self.pass_cpu_seconds_ = pass_times
         self.fit_cpu_seconds_ = time.process_time() - c0
-        self.defensive_ = (self._cross_fit_epsilon(cells, used, params, groups[keep]) if self.defensive == "cv"
-                           else float(self.defensive or 0.0))
+        if "cv" in (self.defensive, self.temper):
+            self.defensive_, self.temper_ = self._cross_fit_calibration(cells, used, params, groups[keep])
+        else:
+            self.defensive_, self.temper_ = float(self.defensive or 0.0), float(self.temper or 1.0)
         self._describe(full)
         self.bandwidth_loglik_ = {self.spatial_bandwidth_: self.loglik_} if self.spatial_bandwidth_ else {}
         self.__dict__.pop("prior_", None)
@@ -431,13 +444,16 @@ class PriorEstimator(BaseEstimator):
             chosen = fits[best]
         return params, aic, chosen
 
-    def _cross_fit_epsilon(self, cells: CellStats, used: PointStats, params: list[TermParams], fold: np.ndarray) -> float:
-        """ε of the defensive mixture maximising Σ_i w_i log((1 − ε)·p_{−f(i)}(x_i) + ε·u), p_{−f} the
-        model fitted without fold f; u uniform over the support (1 / its area, m⁻²)."""
+    def _cross_fit_calibration(self, cells: CellStats, used: PointStats, params: list[TermParams],
+                               fold: np.ndarray) -> tuple[float, float]:
+        """(ε, τ) maximising Σ_i w_i log((1 − ε)·p^τ_{−f(i)}(x_i) + ε·u): p_{−f} the model fitted
+        without fold f, p^τ ∝ r^τ its tempered density (τ = 1 unless ``temper="cv"``, ε = 0 unless
+        ``defensive="cv"``), u uniform over the support (1 / its area, m⁻²)."""
         folds = np.unique(fold)
         if len(folds) < 2:
-            return 0.0
-        logp = np.empty(len(fold))
+            return 0.0, 1.0
+        lr = np.empty(len(fold))
+        per_fold = []
         support = np.ones(len(cells.area), dtype=bool)
         for f in folds:
             train = used.subset(fold != f)
@@ -445,22 +461,38 @@ class PriorEstimator(BaseEstimator):
             res = self._solve(cells, train, params)
             x = np.concatenate([r.x for r in res])
             obj = Objective(cells, train, params, list(range(len(params))), self.penalty_sd, self.smooth_sd)
-            log_z, _ = obj.log_z(x)
-            lr = np.zeros(int(test.sum()))
+            lr_f = np.zeros(int(test.sum()))
             lc = np.zeros(len(cells.area))
             for k, th in enumerate(obj.split(x)):
-                lr += params[k].logr(th, used.index[test, k], used.value[test, k].copy())
+                lr_f += params[k].logr(th, used.index[test, k], used.value[test, k].copy())
                 lc += params[k].cell_lut(th)[cells.index[:, k]]
-            logp[test] = lr - log_z
+            lr[test] = lr_f
             support &= np.isfinite(lc)
+            per_fold.append((test, lc))
         log_u = -np.log(cells.area[support].sum())
+        log_area = np.log(cells.area)
         w = used.weights
+        fit_eps, fit_tau = self.defensive == "cv", self.temper == "cv"
+        eps0 = 0.0 if fit_eps else float(self.defensive or 0.0)
+        tau0 = 1.0 if fit_tau else float(self.temper or 1.0)
 
-        def nll(eps: float) -> float:
-            return -float(w @ np.logaddexp(np.log1p(-eps) + logp, np.log(eps) + log_u if eps > 0 else -np.inf))
+        def nll(z: np.ndarray) -> float:
+            eps = z[0] if fit_eps else eps0
+            tau = z[-1] if fit_tau else tau0
+            logp = np.empty(len(fold))
+            for test, lc in per_fold:
+                ok = np.isfinite(lc)
+                top = float((tau * lc[ok] + log_area[ok]).max())
+                logp[test] = tau * lr[test] - (top + np.log(np.exp(tau * lc[ok] + log_area[ok] - top).sum()))
+            mix = np.logaddexp(np.log1p(-eps) + logp, np.log(eps) + log_u) if eps > 0 else logp
+            return -float(w @ mix) / w.sum()
 
-        best = optimize.minimize_scalar(nll, bounds=(0.0, 0.999), method="bounded", options={"xatol": 1e-6})
-        return float(best.x) if nll(best.x) < nll(0.0) else 0.0
+        z0 = np.array([0.01] * fit_eps + [1.0] * fit_tau)
+        bounds = [(0.0, 0.999)] * fit_eps + [(TEMPER_MIN, 1.5)] * fit_tau
+        with threadpool_limits(limits=1, user_api="blas"):
+            best = optimize.minimize(nll, z0, method="L-BFGS-B", bounds=bounds)
+        z = best.x
+        return (float(z[0]) if fit_eps else eps0), (float(z[-1]) if fit_tau else tau0)
 
     def _fit_bandwidths(self, points: np.ndarray, weights: np.ndarray | None) -> PriorEstimator:
         """Fit the hybrid at each candidate bandwidth; keep the best held-out-value log-likelihood."""
@@ -541,9 +573,13 @@ class PriorEstimator(BaseEstimator):
                 "smooth_sd": self.smooth_sd,
                 "loglik_nats": self.loglik_,
                 "defensive_epsilon": self.defensive_,
+                "temper_exponent": self.temper_,
                 "weighted": self.point_stats_.weight is not None,
             }
         }
+        if self.temper_ != 1.0:
+            meta["learned"]["tempering"] = (f"p proportional to r^{self.temper_:.4g} (r: these tables); not representable in "
+                                            "them (the estimator's prior_ and --hybrid-prior apply it)")
         if self.defensive_:
             meta["learned"]["defensive_mixture"] = (
                 f"p = (1 - {self.defensive_:.4g}) * p_model + {self.defensive_:.4g} * uniform over the support; "
@@ -572,6 +608,9 @@ class PriorEstimator(BaseEstimator):
             p = self.likelihoods_[SPATIAL]
             logr = kde_logr(self.stack_[SPATIAL].values, p["gamma"], p["alpha"])
             r *= np.exp(logr - logr.max())
+        if self.temper_ != 1.0:
+            pos = r > 0
+            r = np.where(pos, np.exp(self.temper_ * (np.log(np.where(pos, r, 1.0)) - np.log(r.max()))), 0.0)
         if self.defensive_ > 0:
             support = r > 0
             r = (1.0 - self.defensive_) * r / r.sum() + self.defensive_ * support / support.sum()

@@ -76,6 +76,8 @@ class LearnReport:
         if est.defensive is not None:
             how = "cross-fitted ML over block folds" if est.defensive == "cv" else "fixed"
             lines.append(f"defensive mixture: p = (1 - eps) p_model + eps uniform, eps = {est.defensive_:.4g} ({how})")
+        if est.temper is not None:
+            lines.append(f"tempered: p_model proportional to r^tau, tau = {est.temper_:.4g}")
         if self.hybrid is not None:
             p = self.hybrid.likelihoods_[SPATIAL]
             lines.append(f"hybrid: terrain x (alpha + (1 - alpha) KDE/uniform)^gamma, gamma = {p['gamma']:.3f} "
@@ -129,6 +131,7 @@ def diagnostics(report: LearnReport) -> dict:
             "converged": [r.success for r in e.fit_results_], "messages": [r.message for r in e.fit_results_],
             "iterations": [r.n_iter for r in e.fit_results_], "at_bound": [r.at_bound for r in e.fit_results_],
             "seconds": e.fit_seconds_, "pass_seconds": e.pass_seconds_,
+            "defensive_epsilon": e.defensive_, "curves": e.curves_, "spline_aic_per_lambda": e.smoothing_aic_,
         }
 
     out = {
@@ -217,7 +220,7 @@ def prepare_learning(
     est = PriorEstimator(
         template=config.model, feature_names=tuple(names), penalty_sd=lc.penalty_sd, smooth_sd=lc.smooth_sd,
         on_zero=lc.on_zero, soften=lc.soften, flexible=lc.flexible or None, bin_width=lc.bin_width,
-        forms=dict(lc.forms) or None, defensive=lc.defensive, spatial_block=lc.block_size_m, spatial_folds=lc.folds,
+        forms=dict(lc.forms) or None, defensive=lc.defensive, temper=lc.temper, spatial_block=lc.block_size_m, spatial_folds=lc.folds,
     )
     return config, lc, pts, est
 

@@ -297,7 +297,7 @@ def learn_region_tiled(
     config, lc, pts, est = prepare_learning(region, targets, layer, x, y, targets_crs)
     if lc.forms or lc.weights:
         raise ValueError(f"{config.path}: tiled learning fits the [likelihood.*] tables' forms, unweighted; [learn] forms/weights need the in-memory learn")
-    est.set_params(defensive=None if lc.defensive == "cv" else lc.defensive)
+    est.set_params(defensive=None if lc.defensive == "cv" else lc.defensive, temper=None if lc.temper == "cv" else lc.temper)
     skipped = ["the spatial block cross-validation"] + (["the hybrid fit"] if lc.hybrid else []) + (
         ["the defensive mixture's cross-fitted epsilon"] if lc.defensive == "cv" else [])
     log.info("tiled learning: skipping %s (they need the whole grid)", " and ".join(skipped))

@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 
 from pipeline.config.learn import FormSpec
 from pipeline.features.stack import Feature, FeatureStack
-from pipeline.learn.estimator import PriorEstimator
+from pipeline.learn.estimator import SPLINE_LAMBDAS, PriorEstimator
 from pipeline.learn.forms import basis, difference_penalty, knots
 from pipeline.learn.plots import plot_fit
 from pipeline.prior.terrain import TerrainPrior
@@ -75,7 +75,7 @@ def test_spline_recovers_the_smooth_elevation_effect_within_its_errors(world) ->
     stack, prior = world
     forms = {**LINEAR, "elevation": {"form": "spline", "knots": 6}}  # λ by AIC
     est = fit(stack, prior.sample(6000, np.random.default_rng(7)), forms)
-    assert set(est.smoothing_aic_["elevation"]) == {float(v) for v in 10.0 ** np.arange(-2, 5)}
+    assert set(est.smoothing_aic_["elevation"]) == set(SPLINE_LAMBDAS)
     curve = est.curves_["elevation"]
     v, lr, se = (np.asarray(curve[k]) for k in ("value", "logr", "se"))
     truth = elevation_logr(v) - elevation_logr(v[0])
@@ -148,6 +148,17 @@ def test_defensive_epsilon_finds_the_uniform_share(world) -> None:
     d = est.prior_.density
     assert np.isclose(d.sum() * stack.grid.cell_area, 1.0) and np.all(d[stack["water"].values == 1] == 0)
     assert est.model_.meta["learned"]["defensive_epsilon"] == est.defensive_
+
+
+def test_tempering_is_one_for_a_well_specified_model(world) -> None:
+    """Cross-fitted τ (p ∝ r^τ, chosen with ε): about 1, and ε about 0, when the model is the truth's."""
+    stack, prior = world
+    forms = {"road_distance": {"form": "linear", "scale": "log1p"}, "elevation": {"form": "spline", "knots": 4, "smoothing": 1.0}}
+    est = PriorEstimator(features=stack, feature_names=("water", "road_distance", "elevation"), forms=forms, template=TRUE_MODEL,
+                         temper="cv", defensive="cv", spatial_block=600.0).fit(prior.sample(3000, np.random.default_rng(8)))
+    assert abs(est.temper_ - 1.0) < 0.1 and est.defensive_ < 0.03
+    assert np.isclose(est.prior_.density.sum() * stack.grid.cell_area, 1.0)
+    assert est.model_.meta["learned"]["temper_exponent"] == est.temper_
 
 
 def test_every_form_has_errors_and_a_plot(world, tmp_path) -> None:
