@@ -70,6 +70,8 @@ DEFENSIVE_BLOCK_M = 2000.0
 """Block side (metres) of the folds that choose the defensive ε when ``spatial_block`` is None."""
 BASIS_FLOOR = 1e-12
 """Smallest value of a basis form's written table relative to its maximum."""
+SEARCH_FTOL = 1e-9
+"""L-BFGS-B tolerance of the fits that compare λ candidates (the chosen one is then refitted at 1e-13)."""
 SPLINE_LAMBDAS = tuple(10.0 ** np.arange(-1, 4))
 """Candidate λ of a spline term's difference penalty when its smoothing is chosen by AIC."""
 
@@ -402,11 +404,11 @@ class PriorEstimator(BaseEstimator):
         return self
 
     def _solve(self, cells: CellStats, used: PointStats, params: list[TermParams],
-               x0: np.ndarray | None = None) -> list[FitResult]:
+               x0: np.ndarray | None = None, ftol: float = 1e-13) -> list[FitResult]:
         """The optimisation: all terms jointly (ml, from ``x0`` when given) or each alone on its marginal (naive)."""
         if self.method == "ml":
-            return [fit(Objective(cells, used, params, list(range(len(params))), self.penalty_sd, self.smooth_sd), x0)]
-        return [fit(Objective(cells, used, params, [k], self.penalty_sd, self.smooth_sd)) for k in range(len(params))]
+            return [fit(Objective(cells, used, params, list(range(len(params))), self.penalty_sd, self.smooth_sd), x0, ftol)]
+        return [fit(Objective(cells, used, params, [k], self.penalty_sd, self.smooth_sd), None, ftol) for k in range(len(params))]
 
     def _form(self, name: str) -> FormSpec | None:
         spec = (self.forms or {}).get(name)
@@ -430,7 +432,7 @@ class PriorEstimator(BaseEstimator):
             for lam in SPLINE_LAMBDAS[::-1]:  # smooth to rough: each fit starts from the smoother one
                 trial = list(params)
                 trial[k] = _with_lambda(p, lam)
-                res = self._solve(cells, used, trial, x)
+                res = self._solve(cells, used, trial, x, SEARCH_FTOL)
                 x = np.concatenate([r.x for r in res])
                 fits[float(lam)] = res
                 cov = np.nan_to_num(_block_diag([r.cov for r in res]))
@@ -442,6 +444,8 @@ class PriorEstimator(BaseEstimator):
             params[k] = _with_lambda(p, best)
             aic[p.term.feature] = scores
             chosen = fits[best]
+        if chosen is not None and self.method == "ml":  # polish the chosen fit to full precision
+            chosen = self._solve(cells, used, params, chosen[0].x)
         return params, aic, chosen
 
     def _cross_fit_calibration(self, cells: CellStats, used: PointStats, params: list[TermParams],

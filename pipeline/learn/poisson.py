@@ -357,9 +357,9 @@ def _start_nonlinear(obj: Objective, x0: np.ndarray) -> np.ndarray:
     return x
 
 
-def fit(obj: Objective, x0: np.ndarray | None = None) -> FitResult:
+def fit(obj: Objective, x0: np.ndarray | None = None, ftol: float = 1e-13) -> FitResult:
     """Minimise −(ℓ − penalty) with L-BFGS-B from ``x0`` (default: the terms' starts, with a search
-    for the road and KDE terms); covariance = inverse observed information."""
+    for the road and KDE terms) to relative tolerance ``ftol``; covariance = inverse observed information."""
     if obj.n == 0:
         raise ValueError("no points left to fit (all off the grid or on structural zeros?)")
     x0 = _start_nonlinear(obj, obj.x0) if x0 is None else np.clip(x0, *np.array(
@@ -369,7 +369,7 @@ def fit(obj: Objective, x0: np.ndarray | None = None) -> FitResult:
     # one BLAS thread: L-BFGS-B's small dense products are slower threaded (x9 under a loaded machine)
     with threadpool_limits(limits=1, user_api="blas"):
         res = optimize.minimize(
-            obj, x0, jac=True, method="L-BFGS-B", bounds=obj.bounds, options={"maxiter": 2000, "ftol": 1e-13, "gtol": 1e-9}
+            obj, x0, jac=True, method="L-BFGS-B", bounds=obj.bounds, options={"maxiter": 2000, "ftol": ftol, "gtol": 1e-9}
         )
     x = res.x
     lo = np.array([b[0] if b[0] is not None else -np.inf for b in obj.bounds])
