@@ -147,6 +147,8 @@ def cmd_learn(args: argparse.Namespace) -> None:
     outputs = [Output("--out", args.out), Output("--hybrid-prior", args.hybrid_prior) if args.hybrid_prior else None]
     with command_outputs(outputs, inputs) as out:
         hybrid = out.path("--hybrid-prior") if args.hybrid_prior else None
+        if tiled and args.weights:
+            raise ValueError("--weights: tiled learning (--tiled / --scheduler) is unweighted")
         if tiled:
             from pipeline.tiled.learn import learn_region_tiled  # dask loads only when tiled
 
@@ -158,7 +160,8 @@ def cmd_learn(args: argparse.Namespace) -> None:
             from pipeline.learn.run import learn_region
 
             report = learn_region(args.region, args.targets, out.path("--out"), args.layer, args.x, args.y,
-                                  args.targets_crs, cv=not args.no_cv, hybrid_prior=hybrid, progress=not args.quiet)
+                                  args.targets_crs, cv=not args.no_cv, hybrid_prior=hybrid, progress=not args.quiet,
+                                  weights=args.weights)
         written = [out.final(p) for p in report.paths.values()]
     report.paths = dict(zip(report.paths, written, strict=True))
     print(report.table())
@@ -173,6 +176,8 @@ def add_learn_parser(sub, quiet: argparse.ArgumentParser) -> None:
     p.add_argument("--x", default="x", help="CSV column of x (default x)")
     p.add_argument("--y", default="y", help="CSV column of y (default y)")
     p.add_argument("--targets-crs", help="CRS of CSV coordinates (default: the grid's)")
+    p.add_argument("--weights", metavar="COLUMN", help="targets column of per-point weights (> 0: a weight w counts as w targets there; "
+                   "default [learn] weights, else all 1)")
     p.add_argument("--out", type=Path, required=True, help="fitted likelihood tables (TOML); diagnostics and plot beside it")
     p.add_argument("--no-cv", action="store_true", help="skip the spatial block cross-validation")
     p.add_argument("--hybrid-prior", type=Path, help="also write the hybrid (terrain + KDE) prior GeoTIFF here")

@@ -14,6 +14,16 @@
     block_size_m = 2000.0
     bandwidths_m = [40, 80, 160, 320, 640]   # KDE candidates (default: 2 cells .. 1/5 of the grid)
     hybrid = true               # also fit and evaluate terrain × (α + (1-α)·KDE/uniform)^γ
+    defensive = "cv"            # p = (1-ε)·p_model + ε·uniform: ε by cross-fitted ML ("cv"), a number, or "none"
+    temper = "cv"               # p ∝ r^τ before the mixture: τ by the same cross-fitted ML, a number, or "none" (default)
+    weights = "count"           # a column of the targets giving each point's weight (--weights overrides)
+
+    [learn.forms.road_distance]     # a feature's form (overrides its [likelihood] table's)
+    form = "decreasing"             # categorical | road | bins | linear | increasing | decreasing | spline
+    scale = "log1p"                 # g(v) the form is in: "linear" (v) or "log1p" (log(1 + v))
+    knots = 8                       # knot intervals (monotone: hinges; spline: B-spline intervals)
+    # smoothing = 10.0              # spline: fixed λ (default: chosen by AIC)
+    # edges = [0, 50, 200]          # bins: left edges
 
 The region's ``[likelihood.*]`` tables are the template: forms, bin edges, structural zeros (0),
 start values. The table is read here and removed before the region config is validated.
@@ -30,8 +40,52 @@ from pipeline.prior.likelihood import read_toml
 
 _KEYS = {
     "features", "on_zero", "soften", "penalty_sd", "smooth_sd", "bin_width", "flexible",
-    "folds", "block_size_m", "bandwidths_m", "hybrid",
+    "folds", "block_size_m", "bandwidths_m", "hybrid", "forms", "defensive", "temper", "weights",
 }
+FORMS = ("categorical", "road", "bins", "linear", "increasing", "decreasing", "spline")
+_FORM_KEYS = {"form", "scale", "knots", "smoothing", "bins", "edges"}
+
+
+@dataclass(frozen=True)
+class FormSpec:
+    """How one feature is fitted (see docs/learn.md, "Forms"): ``form`` one of :data:`FORMS`;
+    basis forms (linear, increasing, decreasing, spline) in ``scale`` ("linear" or "log1p") with
+    ``knots`` knot intervals (default 8 for monotone forms, 10 for the spline), ``smoothing`` the
+    spline's fixed λ (None: chosen by AIC) and ``bins`` fine bins of the sufficient statistics;
+    ``edges`` the left bin edges of the bins form. ValueError names the bad key."""
+
+    form: str
+    scale: str = "linear"
+    knots: int | None = None
+    smoothing: float | None = None
+    bins: int = 100
+    edges: tuple[float, ...] | None = None
+
+    def __post_init__(self) -> None:
+        if self.form not in FORMS:
+            raise ValueError(f"form: must be one of {list(FORMS)}, got {self.form!r}")
+        if self.scale not in ("linear", "log1p"):
+            raise ValueError(f"scale: must be \"linear\" or \"log1p\", got {self.scale!r}")
+        if self.knots is not None and not (isinstance(self.knots, int) and not isinstance(self.knots, bool) and 1 <= self.knots <= 100):
+            raise ValueError(f"knots: must be an integer in 1..100, got {self.knots!r}")
+        if self.form == "spline" and self.knots is not None and self.knots < 2:
+            raise ValueError(f"knots: a spline needs at least 2 knot intervals, got {self.knots}")
+        if self.smoothing is not None and not (isinstance(self.smoothing, int | float) and not isinstance(self.smoothing, bool)
+                                               and math.isfinite(self.smoothing) and self.smoothing >= 0):
+            raise ValueError(f"smoothing: must be a non-negative number (the spline's λ), got {self.smoothing!r}")
+        if not (isinstance(self.bins, int) and not isinstance(self.bins, bool) and 8 <= self.bins <= 100_000):
+            raise ValueError(f"bins: must be an integer in 8..100000, got {self.bins!r}")
+        if self.form == "bins":
+            e = self.edges
+            if not (isinstance(e, list | tuple) and e and all(isinstance(v, int | float) and not isinstance(v, bool) for v in e)):
+                raise ValueError(f"edges: the bins form needs a list of left bin edges, got {e!r}")
+            if any(b <= a for a, b in zip(e, e[1:], strict=False)):
+                raise ValueError(f"edges: must increase, got {list(e)}")
+            object.__setattr__(self, "edges", tuple(float(v) for v in e))
+        elif self.edges is not None:
+            raise ValueError(f"edges: only the bins form takes edges (form is {self.form!r})")
+        if self.knots is None and self.form in ("increasing", "decreasing", "spline"):
+            object.__setattr__(self, "knots", 10 if self.form == "spline" else 8)
 
 
 @dataclass(frozen=True)
@@ -49,6 +103,10 @@ class LearnConfig:
     block_size_m: float = 2000.0
     bandwidths_m: tuple[float, ...] | None = None
     hybrid: bool = True
+    forms: dict[str, FormSpec] = field(default_factory=dict)
+    defensive: float | str | None = "cv"
+    temper: float | str | None = None
+    weights: str | None = None
 
 
 def _positive(source: Path, key: str, v: object, allow_zero: bool = False) -> float:
@@ -107,6 +165,44 @@ def parse_learn(d: dict, source: Path) -> LearnConfig:
                 raise ConfigError(f"{source}: learn.flexible.{name}: edges must increase, got {edges}")
             out[name] = [float(e) for e in edges]
         kw["flexible"] = out
+    if "forms" in d:
+        if not isinstance(d["forms"], dict):
+            raise ConfigError(f"{source}: learn.forms: expected tables [learn.forms.<feature>], got {d['forms']!r}")
+        forms = {}
+        for name, spec in d["forms"].items():
+            if not isinstance(spec, dict):
+                raise ConfigError(f"{source}: learn.forms.{name}: expected a table with form = ..., got {spec!r}")
+            unknown = sorted(set(spec) - _FORM_KEYS)
+            if unknown or "form" not in spec:
+                raise ConfigError(f"{source}: learn.forms.{name}: " + (f"unknown keys {unknown}; allowed {sorted(_FORM_KEYS)}"
+                                                                      if unknown else "no form = ... key"))
+            try:
+                forms[name] = FormSpec(**spec)
+            except ValueError as e:
+                raise ConfigError(f"{source}: learn.forms.{name}.{e}") from None
+        kw["forms"] = forms
+    if "defensive" in d:
+        v = d["defensive"]
+        if v == "none":
+            kw["defensive"] = None
+        elif v == "cv":
+            kw["defensive"] = "cv"
+        elif isinstance(v, int | float) and not isinstance(v, bool) and 0 <= v < 1:
+            kw["defensive"] = float(v)
+        else:
+            raise ConfigError(f"{source}: learn.defensive: must be \"cv\", \"none\" or a number in [0, 1), got {v!r}")
+    if "temper" in d:
+        v = d["temper"]
+        if v in ("none", "cv"):
+            kw["temper"] = None if v == "none" else "cv"
+        elif isinstance(v, int | float) and not isinstance(v, bool) and 0.05 <= v <= 1.5:
+            kw["temper"] = float(v)
+        else:
+            raise ConfigError(f"{source}: learn.temper: must be \"cv\", \"none\" or a number in [0.05, 1.5], got {v!r}")
+    if "weights" in d:
+        if not (isinstance(d["weights"], str) and d["weights"]):
+            raise ConfigError(f"{source}: learn.weights: expected a column name of the targets, got {d['weights']!r}")
+        kw["weights"] = d["weights"]
     return LearnConfig(**kw)
 
 
@@ -120,7 +216,8 @@ def load_learn_config(path: str | Path) -> tuple[RegionConfig, LearnConfig]:
         missing = [f for f in learn.features if f not in region.features]
         if missing:
             raise ConfigError(f"{path}: learn.features: no feature {missing[0]!r}; features are {sorted(region.features)}")
-    for name in learn.flexible:
-        if name not in region.features:
-            raise ConfigError(f"{path}: learn.flexible: no feature {name!r}; features are {sorted(region.features)}")
+    for key, names in (("flexible", learn.flexible), ("forms", learn.forms)):
+        for name in names:
+            if name not in region.features:
+                raise ConfigError(f"{path}: learn.{key}: no feature {name!r}; features are {sorted(region.features)}")
     return region, learn

@@ -28,12 +28,16 @@ import warnings
 from functools import cached_property
 
 import numpy as np
+from scipy import optimize
 from sklearn.base import BaseEstimator, clone
 from sklearn.utils.validation import check_is_fitted
+from threadpoolctl import threadpool_limits
 
+from pipeline.config.learn import FormSpec
 from pipeline.features.stack import Feature, FeatureStack
+from pipeline.learn.forms import BASIS_FORMS, basis, difference_penalty, from_scale, to_scale
 from pipeline.learn.kde import block_folds, log_kde_feature
-from pipeline.learn.poisson import Objective, fit, kde_logr, term_params
+from pipeline.learn.poisson import FitResult, Objective, TermParams, fit, kde_logr, term_params
 from pipeline.learn.sufficient import (
     CONTINUOUS_FORMS,
     DISCRETE_FORMS,
@@ -43,6 +47,7 @@ from pipeline.learn.sufficient import (
     Term,
     cached_cell_stats,
     check_points,
+    check_weights,
     point_stats,
     with_range,
 )
@@ -59,6 +64,16 @@ SPATIAL = "spatial_kde"
 SPATIAL_BIN = 0.05
 """Fine-bin width of the log-KDE feature; r varies at most by a factor exp(γ·0.05) across a bin."""
 Z95 = 1.959963984540054
+TEMPER_MIN = 0.05
+"""Smallest tempering exponent τ (τ → 0 is the uniform prior over the support)."""
+DEFENSIVE_BLOCK_M = 2000.0
+"""Block side (metres) of the folds that choose the defensive ε when ``spatial_block`` is None."""
+BASIS_FLOOR = 1e-12
+"""Smallest value of a basis form's written table relative to its maximum."""
+SEARCH_FTOL = 1e-9
+"""L-BFGS-B tolerance of the fits that compare λ candidates (the chosen one is then refitted at 1e-13)."""
+SPLINE_LAMBDAS = tuple(10.0 ** np.arange(-1, 4))
+"""Candidate λ of a spline term's difference penalty when its smoothing is chosen by AIC."""
 
 
 def _template_values(term: Term, table, flexible: dict) -> list[float | None]:
@@ -71,11 +86,13 @@ def _template_values(term: Term, table, flexible: dict) -> list[float | None]:
     return [None] * term.n_levels
 
 
-def template_start(term: Term, template: LikelihoodModel | None, flexible: dict | None = None) -> tuple[Term, dict]:
-    """``term`` with the template's structural zeros (values 0), and its start values for the fit."""
+def template_start(term: Term, template: LikelihoodModel | None, flexible: dict | None = None,
+                   forms: dict | None = None) -> tuple[Term, dict]:
+    """``term`` with the template's structural zeros (values 0), and its start values for the fit
+    (a feature in ``flexible`` or ``forms`` keeps only the template's categorical zeros)."""
     table = template.terms.get(term.feature) if template else None
     if term.form in DISCRETE_FORMS:
-        vals = _template_values(term, table, flexible or {})
+        vals = _template_values(term, table, {**(flexible or {}), **(forms or {})})
         zeros = frozenset(k for k, v in enumerate(vals) if v == 0)
         return dataclasses.replace(term, zeros=zeros), {"logr": np.array([np.log(v) if v else 0.0 for v in vals])}
     if isinstance(table, RoadDistanceLikelihood):
@@ -90,39 +107,68 @@ def make_terms(
     flexible: dict[str, list[float]] | None,
     bin_width: float | None,
     n_bins: int,
+    forms: dict[str, FormSpec | dict] | None = None,
 ) -> tuple[list[Term], list[dict]]:
-    """Terms to fit and their start values, following the template's forms and structural zeros.
+    """Terms to fit and their start values: each feature's form from ``forms``, else ``flexible``
+    (bins), else the template's table, else the default.
 
-    Without a template: categorical features -> categorical terms, continuous features in metres ->
-    the road form, other continuous features -> ``n_bins`` quantile bins. ``flexible`` replaces a
-    feature's form by bins with these left edges (feature units).
+    Features: ``feature_names``, else every feature with a template table, a form or a flexible entry
+    (features of the stack outside these are named in a warning: not fitted), else every feature.
+    Defaults: categorical features -> categorical terms, continuous features in metres -> the road
+    form, other continuous features -> ``n_bins`` quantile bins.
     """
-    names = list(feature_names or (template.terms if template else [f.name for f in stack]))
+    forms = {k: v if isinstance(v, FormSpec) else FormSpec(**v) for k, v in (forms or {}).items()}
     flexible = flexible or {}
+    if feature_names is not None:
+        names = list(feature_names)
+    elif template is not None or forms or flexible:
+        names = list(dict.fromkeys([*(template.terms if template else ()), *forms, *flexible]))
+        left = [f.name for f in stack if f.name not in names and f.name != SPATIAL]
+        if left:
+            warnings.warn(f"PriorEstimator: features {left} have no template table or form and are not fitted; "
+                          "list the features to fit in feature_names (they then get a form or the default)", stacklevel=3)
+    else:
+        names = [f.name for f in stack]
+    missing = [n for n in [*names, *forms, *flexible] if n not in stack.features]
+    if missing:
+        raise ValueError(f"no feature {missing[0]!r} in the stack; features are {sorted(stack.features)}")
     terms = []
     for name in names:
         f = stack[name]
         table = template.terms.get(name) if template else None
         nodata = float(getattr(table, "nodata", 1.0))
-        if f.kind == "categorical":
+        spec = forms.get(name)
+        if spec is None and name in flexible:
+            spec = FormSpec("bins", edges=tuple(flexible[name]))
+        if spec is None:
+            if f.kind == "categorical":
+                spec = FormSpec("categorical")
+            elif isinstance(table, BinnedLikelihood):
+                spec = FormSpec("bins", edges=tuple(table.edges))
+            elif isinstance(table, RoadDistanceLikelihood) or (table is None and f.units == "m"):
+                spec = FormSpec("road")
+            else:
+                finite = f.values[np.isfinite(f.values)]
+                spec = FormSpec("bins", edges=tuple(np.unique(np.quantile(finite, np.linspace(0, 1, n_bins + 1)[:-1]))))
+        if (spec.form == "categorical") != (f.kind == "categorical"):
+            raise ValueError(f"feature {name!r} is {f.kind}; form {spec.form!r} is for "
+                             f"{'categorical' if spec.form == 'categorical' else 'continuous'} features")
+        if spec.form == "categorical":
             if table is not None and not isinstance(table, CategoricalLikelihood):
                 raise ValueError(f"feature {name!r} is categorical but its template table is {type(table).__name__}")
             codes = tuple(int(c) for c in f.codes())
             terms.append(Term(name, "categorical", tuple(f.label(c) for c in codes), codes, nodata=nodata))
-        elif name in flexible or isinstance(table, BinnedLikelihood) or (table is None and f.units != "m"):
-            if name in flexible:
-                edges = list(flexible[name])
-            elif isinstance(table, BinnedLikelihood):
-                edges = list(table.edges)
-            else:
-                finite = f.values[np.isfinite(f.values)]
-                edges = list(np.unique(np.quantile(finite, np.linspace(0, 1, n_bins + 1)[:-1])))
-            levels = tuple(f"{e:g}" for e in edges)
-            terms.append(Term(name, "binned", levels, edges=tuple(float(e) for e in edges), nodata=nodata))
-        else:
+        elif spec.form == "bins":
+            edges = list(spec.edges)
+            terms.append(Term(name, "binned", tuple(f"{e:g}" for e in edges), edges=tuple(edges), nodata=nodata))
+        elif spec.form == "road":
             width = bin_width or stack.grid.dx / 4.0
             terms.append(with_range(Term(name, "road", bin_width=width, nodata=nodata), f.values))
-    pairs = [template_start(t, template, flexible) for t in terms]
+        else:
+            lam = spec.smoothing if spec.smoothing is not None else (SPLINE_LAMBDAS[len(SPLINE_LAMBDAS) // 2] if spec.form == "spline" else 0.0)
+            term = Term(name, spec.form, nodata=nodata, n_fine=spec.bins, scale=spec.scale, n_knots=spec.knots or 1, lam=lam)
+            terms.append(with_range(term, f.values))
+    pairs = [template_start(t, template, flexible, forms) for t in terms]
     terms, starts = [p[0] for p in pairs], [p[1] for p in pairs]
     return terms, starts
 
@@ -154,8 +200,19 @@ class PriorEstimator(BaseEstimator):
     spatial_block, spatial_folds : metres and a count; see ``spatial_bandwidth``.
     spatial_floor : α, the fixed share of the uniform density in the KDE term. Default 0.01: a
         target far from every past one costs at most γ·log(1/0.01) ≈ 4.6·γ nats over the terrain fit.
-    bin_width : fine-bin width of continuous terms in feature units (default: a quarter cell).
-    n_bins : quantile bins of continuous non-distance features without a template.
+    bin_width : fine-bin width of the road form in feature units (default: a quarter cell).
+    n_bins : quantile bins of continuous non-distance features without a template or form.
+    forms : feature -> :class:`pipeline.config.learn.FormSpec` (or a dict of its fields): the form
+        each feature is fitted with (categorical, road, bins, linear, increasing, decreasing,
+        spline; docs/learn.md "Forms"); overrides the template's and ``flexible``.
+    defensive : the defensive mixture p = (1 − ε)·p_model + ε·u, u uniform over the model's support
+        (structural zeros stay zero): None (ε = 0), a number ε in [0, 1), or ``"cv"``: ε maximises
+        the weighted log-likelihood of each point under the model fitted without its block fold
+        (``spatial_folds`` folds of ``spatial_block`` metres, 2000 m when None), cross-fitted on the
+        same statistics (``defensive_`` is the ε used).
+    temper : the tempered model p ∝ r^τ (before the mixture): None (τ = 1), a number, or ``"cv"``: τ
+        chosen with ε on the same cross-fitted likelihood (``temper_``). τ < 1 flattens a model whose
+        effects, learned in the training blocks, are too sharp elsewhere.
     """
 
     def __init__(
@@ -175,6 +232,9 @@ class PriorEstimator(BaseEstimator):
         spatial_floor: float = 0.01,
         bin_width: float | None = None,
         n_bins: int = 8,
+        forms: dict | None = None,
+        defensive: float | str | None = None,
+        temper: float | str | None = None,
     ) -> None:
         self.features = features
         self.template = template
@@ -191,6 +251,9 @@ class PriorEstimator(BaseEstimator):
         self.spatial_floor = spatial_floor
         self.bin_width = bin_width
         self.n_bins = n_bins
+        self.forms = forms
+        self.defensive = defensive
+        self.temper = temper
 
     def __sklearn_clone__(self) -> PriorEstimator:
         """A clone sharing the feature stack: it is the data the points live on, not a setting, and
@@ -208,20 +271,32 @@ class PriorEstimator(BaseEstimator):
             raise ValueError(f"penalty_sd must be > 0 and smooth_sd >= 0, got {self.penalty_sd}, {self.smooth_sd}")
         if self.on_zero == "soften" and not 0 < self.soften < 1:
             raise ValueError(f"soften must be in (0, 1), got {self.soften}")
+        d = self.defensive
+        if not (d is None or d == "cv" or (isinstance(d, int | float) and not isinstance(d, bool) and 0 <= d < 1)):
+            raise ValueError(f"defensive must be None, 'cv' or a number in [0, 1), got {d!r}")
+        t = self.temper
+        if not (t is None or t == "cv" or (isinstance(t, int | float) and not isinstance(t, bool) and TEMPER_MIN <= t <= 1.5)):
+            raise ValueError(f"temper must be None, 'cv' or a number in [{TEMPER_MIN}, 1.5], got {t!r}")
 
-    def fit(self, X: np.ndarray, y: None = None) -> PriorEstimator:
+    def fit(self, X: np.ndarray, y: None = None, sample_weight: np.ndarray | None = None) -> PriorEstimator:
         """Fit to points X (N, 2) in metres in the grid's CRS (``y`` is ignored). Points off the grid are
-        dropped and counted; points on structural zeros are dropped or the zeros softened (``on_zero``)."""
+        dropped and counted; points on structural zeros are dropped or the zeros softened (``on_zero``).
+
+        ``sample_weight`` (N,): each point's weight in the weighted Poisson-process likelihood
+        Σ w_i log p(x_i): a point of weight w counts as w targets there (counts per location), and
+        fractional weights down-weight unreliable sightings. Weights must be finite and > 0 (a
+        ValueError names the bad rows); standard errors treat them as counts."""
         self._check_params()
         if self.features is None:
             raise ValueError("PriorEstimator.fit: no feature stack; give PriorEstimator(features=stack, ...)")
         pts = check_points(X)
+        weights = check_weights(sample_weight, len(pts))
         if self.spatial_bandwidth is not None and np.ndim(self.spatial_bandwidth) > 0:
-            return self._fit_bandwidths(pts)
+            return self._fit_bandwidths(pts, weights)
         t0, c0 = time.perf_counter(), time.process_time()
         features = stack = self.features
         self.spatial_bandwidth_ = float(self.spatial_bandwidth) if self.spatial_bandwidth else None
-        terms, _ = make_terms(features, self.template, self.feature_names, self.flexible, self.bin_width, self.n_bins)
+        terms, _ = make_terms(features, self.template, self.feature_names, self.flexible, self.bin_width, self.n_bins, self.forms)
         loo = None
         if self.spatial_bandwidth_:
             inside = features.grid.contains(pts[:, 0], pts[:, 1])
@@ -236,12 +311,15 @@ class PriorEstimator(BaseEstimator):
             terms.append(with_range(Term(SPATIAL, "kde", bin_width=SPATIAL_BIN), logk))
         cells = cached_cell_stats(stack, tuple(terms))
         pass_times = (time.perf_counter() - t0, time.process_time() - c0)
-        pstats = point_stats(stack, tuple(terms), pts)
+        pstats = point_stats(stack, tuple(terms), pts, weights)
         if loo is not None:
             pstats.value[:, -1] = loo
         self.stack_ = stack
         self.n_features_in_ = 2
-        return self._fit_from_stats(cells, pstats, t0, c0, pass_times)
+        groups = None
+        if "cv" in (self.defensive, self.temper):
+            groups = block_folds(pts, features.grid.bounds[:2], self.spatial_block or DEFENSIVE_BLOCK_M, self.spatial_folds)
+        return self._fit_from_stats(cells, pstats, t0, c0, pass_times, groups)
 
     def fit_stats(self, cells: CellStats, points: PointStats) -> PriorEstimator:
         """Fit from precomputed statistics: ``cells`` (e.g. from
@@ -265,13 +343,13 @@ class PriorEstimator(BaseEstimator):
         return self._fit_from_stats(cells, points, t0, c0, (np.nan, np.nan))  # the pass ran elsewhere
 
     def _fit_from_stats(self, cells: CellStats, pstats: PointStats, t0: float, c0: float,
-                        pass_times: tuple[float, float]) -> PriorEstimator:
+                        pass_times: tuple[float, float], groups: np.ndarray | None = None) -> PriorEstimator:
         """The fit proper, shared by :meth:`fit` and :meth:`fit_stats`: reference levels, parameters,
         the optimisation and every fitted attribute."""
         terms = [_with_reference(t, cells.level_area(k)) for k, t in enumerate(cells.terms)]
         cells = dataclasses.replace(cells, terms=tuple(terms))
         pstats = dataclasses.replace(pstats, terms=tuple(terms))
-        starts = [{"alpha": self.spatial_floor} if t.form == "kde" else template_start(t, self.template, self.flexible)[1]
+        starts = [{"alpha": self.spatial_floor} if t.form == "kde" else template_start(t, self.template, self.flexible, self.forms)[1]
                   for t in terms]
         soften = self.soften if self.on_zero == "soften" else None
         params = [
@@ -280,10 +358,13 @@ class PriorEstimator(BaseEstimator):
         ]
         keep, counts = _usable(pstats, params, soften is not None)
         used = pstats.subset(keep)
-        if self.method == "ml":
-            results = [fit(Objective(cells, used, params, list(range(len(terms))), self.penalty_sd, self.smooth_sd))]
-        else:
-            results = [fit(Objective(cells, used, params, [k], self.penalty_sd, self.smooth_sd)) for k in range(len(terms))]
+        if "cv" in (self.defensive, self.temper) and groups is None:
+            raise ValueError("defensive='cv' / temper='cv' need the points' block folds; fit_stats takes numbers or None")
+        params, self.smoothing_aic_, results = self._choose_smoothing(cells, used, params)
+        terms = [p.term for p in params]
+        cells = dataclasses.replace(cells, terms=tuple(terms))
+        used = dataclasses.replace(used, terms=tuple(terms))
+        results = results or self._solve(cells, used, params)
         x = np.concatenate([r.x for r in results])
         cov = _block_diag([r.cov for r in results])
         full = Objective(cells, used, params, list(range(len(terms))), self.penalty_sd, self.smooth_sd)
@@ -306,6 +387,10 @@ class PriorEstimator(BaseEstimator):
         self.fit_seconds_ = time.perf_counter() - t0
         self.pass_seconds_, self.pass_cpu_seconds_ = pass_times
         self.fit_cpu_seconds_ = time.process_time() - c0
+        if "cv" in (self.defensive, self.temper):
+            self.defensive_, self.temper_ = self._cross_fit_calibration(cells, used, params, groups[keep])
+        else:
+            self.defensive_, self.temper_ = float(self.defensive or 0.0), float(self.temper or 1.0)
         self._describe(full)
         self.bandwidth_loglik_ = {self.spatial_bandwidth_: self.loglik_} if self.spatial_bandwidth_ else {}
         self.__dict__.pop("prior_", None)
@@ -318,9 +403,105 @@ class PriorEstimator(BaseEstimator):
             )
         return self
 
-    def _fit_bandwidths(self, points: np.ndarray) -> PriorEstimator:
+    def _solve(self, cells: CellStats, used: PointStats, params: list[TermParams],
+               x0: np.ndarray | None = None, ftol: float = 1e-13) -> list[FitResult]:
+        """The optimisation: all terms jointly (ml, from ``x0`` when given) or each alone on its marginal (naive)."""
+        if self.method == "ml":
+            return [fit(Objective(cells, used, params, list(range(len(params))), self.penalty_sd, self.smooth_sd), x0, ftol)]
+        return [fit(Objective(cells, used, params, [k], self.penalty_sd, self.smooth_sd), None, ftol) for k in range(len(params))]
+
+    def _form(self, name: str) -> FormSpec | None:
+        spec = (self.forms or {}).get(name)
+        return spec if spec is None or isinstance(spec, FormSpec) else FormSpec(**spec)
+
+    def _choose_smoothing(self, cells: CellStats, used: PointStats,
+                          params: list[TermParams]) -> tuple[list[TermParams], dict[str, dict[float, float]], list | None]:
+        """λ of each spline term without a fixed ``smoothing``: the candidate in :data:`SPLINE_LAMBDAS`
+        with the least AIC = −2ℓ + 2·edf, edf = K − tr(Cov·λP) the term's effective degrees of
+        freedom (one sweep over the terms, the others at their current λ; each fit starts from the
+        previous λ's). Returns the parameters, the AIC per λ and the chosen fit (None: no choice made)."""
+        params = list(params)
+        aic: dict[str, dict[float, float]] = {}
+        chosen = None
+        offsets = np.concatenate([[0], np.cumsum([p.size for p in params])]).astype(int)
+        for k, p in enumerate(params):
+            spec = self._form(p.term.feature)
+            if p.term.form != "spline" or spec is None or spec.smoothing is not None:
+                continue
+            scores, fits, x = {}, {}, None
+            for lam in SPLINE_LAMBDAS[::-1]:  # smooth to rough: each fit starts from the smoother one
+                trial = list(params)
+                trial[k] = _with_lambda(p, lam)
+                res = self._solve(cells, used, trial, x, SEARCH_FTOL)
+                x = np.concatenate([r.x for r in res])
+                fits[float(lam)] = res
+                cov = np.nan_to_num(_block_diag([r.cov for r in res]))
+                sl = slice(offsets[k], offsets[k + 1])
+                edf = p.size - float(np.trace(cov[sl, sl] @ trial[k].pen))
+                ll = Objective(cells, used, trial, list(range(len(trial))), self.penalty_sd, self.smooth_sd).loglik(x)
+                scores[float(lam)] = -2.0 * ll + 2.0 * edf
+            best = min(scores, key=scores.get)
+            params[k] = _with_lambda(p, best)
+            aic[p.term.feature] = scores
+            chosen = fits[best]
+        if chosen is not None and self.method == "ml":  # polish the chosen fit to full precision
+            chosen = self._solve(cells, used, params, chosen[0].x)
+        return params, aic, chosen
+
+    def _cross_fit_calibration(self, cells: CellStats, used: PointStats, params: list[TermParams],
+                               fold: np.ndarray) -> tuple[float, float]:
+        """(ε, τ) maximising Σ_i w_i log((1 − ε)·p^τ_{−f(i)}(x_i) + ε·u): p_{−f} the model fitted
+        without fold f, p^τ ∝ r^τ its tempered density (τ = 1 unless ``temper="cv"``, ε = 0 unless
+        ``defensive="cv"``), u uniform over the support (1 / its area, m⁻²)."""
+        folds = np.unique(fold)
+        if len(folds) < 2:
+            return 0.0, 1.0
+        lr = np.empty(len(fold))
+        per_fold = []
+        support = np.ones(len(cells.area), dtype=bool)
+        for f in folds:
+            train = used.subset(fold != f)
+            test = fold == f
+            res = self._solve(cells, train, params)
+            x = np.concatenate([r.x for r in res])
+            obj = Objective(cells, train, params, list(range(len(params))), self.penalty_sd, self.smooth_sd)
+            lr_f = np.zeros(int(test.sum()))
+            lc = np.zeros(len(cells.area))
+            for k, th in enumerate(obj.split(x)):
+                lr_f += params[k].logr(th, used.index[test, k], used.value[test, k].copy())
+                lc += params[k].cell_lut(th)[cells.index[:, k]]
+            lr[test] = lr_f
+            support &= np.isfinite(lc)
+            per_fold.append((test, lc))
+        log_u = -np.log(cells.area[support].sum())
+        log_area = np.log(cells.area)
+        w = used.weights
+        fit_eps, fit_tau = self.defensive == "cv", self.temper == "cv"
+        eps0 = 0.0 if fit_eps else float(self.defensive or 0.0)
+        tau0 = 1.0 if fit_tau else float(self.temper or 1.0)
+
+        def nll(z: np.ndarray) -> float:
+            eps = z[0] if fit_eps else eps0
+            tau = z[-1] if fit_tau else tau0
+            logp = np.empty(len(fold))
+            for test, lc in per_fold:
+                ok = np.isfinite(lc)
+                top = float((tau * lc[ok] + log_area[ok]).max())
+                logp[test] = tau * lr[test] - (top + np.log(np.exp(tau * lc[ok] + log_area[ok] - top).sum()))
+            mix = np.logaddexp(np.log1p(-eps) + logp, np.log(eps) + log_u) if eps > 0 else logp
+            return -float(w @ mix) / w.sum()
+
+        z0 = np.array([0.01] * fit_eps + [1.0] * fit_tau)
+        bounds = [(0.0, 0.999)] * fit_eps + [(TEMPER_MIN, 1.5)] * fit_tau
+        with threadpool_limits(limits=1, user_api="blas"):
+            best = optimize.minimize(nll, z0, method="L-BFGS-B", bounds=bounds)
+        z = best.x
+        return (float(z[0]) if fit_eps else eps0), (float(z[-1]) if fit_tau else tau0)
+
+    def _fit_bandwidths(self, points: np.ndarray, weights: np.ndarray | None) -> PriorEstimator:
         """Fit the hybrid at each candidate bandwidth; keep the best held-out-value log-likelihood."""
-        fits = [clone(self).set_params(spatial_bandwidth=float(b)).fit(points) for b in self.spatial_bandwidth]
+        fits = [clone(self).set_params(spatial_bandwidth=float(b)).fit(points, sample_weight=weights)
+                for b in self.spatial_bandwidth]
         best = max(fits, key=lambda e: e.loglik_)
         self.__dict__.pop("prior_", None)
         self.__dict__.update({k: v for k, v in best.__dict__.items() if k.endswith("_") and not k.startswith("_")})
@@ -330,7 +511,7 @@ class PriorEstimator(BaseEstimator):
     def _describe(self, obj: Objective) -> None:
         """likelihoods_, stderr_, ci_ and model_ from theta_ and cov_."""
         se_all = np.sqrt(np.clip(np.diag(self.cov_), 0, None)) if self.cov_.size else np.zeros(0)
-        self.likelihoods_, self.stderr_, self.ci_ = {}, {}, {}
+        self.likelihoods_, self.stderr_, self.ci_, self.curves_ = {}, {}, {}, {}
         table_terms = {}
         for j, (th, k) in enumerate(zip(obj.split(self.theta_), obj.active, strict=True)):
             p = self.params_[k]
@@ -359,6 +540,26 @@ class PriorEstimator(BaseEstimator):
                     "mv": (float(max(mv - Z95 * se[1], 0.0)), float(min(mv + Z95 * se[1], 1.0))),
                 }
                 table_terms[t.feature] = RoadDistanceLikelihood(rmd, mv, t.nodata)
+            elif t.form in BASIS_FORMS:
+                cov = np.nan_to_num(self.cov_[obj.offsets[j] : obj.offsets[j + 1], obj.offsets[j] : obj.offsets[j + 1]])
+                self.curves_[t.feature] = _curve(t, th, cov)
+                if t.form == "linear":
+                    keys, lr, se_lr = ["beta"], th, np.nan_to_num(se)
+                    vals = lr
+                else:
+                    at = from_scale(t.scale, t.kappa if t.form != "spline" else np.linspace(t.kappa[0], t.kappa[-1], 6))
+                    b = basis(t.form, to_scale(t.scale, at), t.kappa)
+                    keys, lr, se_lr = [f"r({v:.4g})" for v in at], b @ th, np.sqrt(np.clip(np.einsum("ij,jk,ik->i", b, cov, b), 0.0, None))
+                    vals = np.exp(lr)
+                lo, hi = (lr - Z95 * se_lr, lr + Z95 * se_lr) if t.form == "linear" else (np.exp(lr - Z95 * se_lr), np.exp(lr + Z95 * se_lr))
+                self.likelihoods_[t.feature] = dict(zip(keys, np.asarray(vals, float).tolist(), strict=True))
+                self.stderr_[t.feature] = dict(zip(keys, np.asarray(se_lr, float).tolist(), strict=True))
+                self.ci_[t.feature] = {k: (float(a), float(c)) for k, a, c in zip(keys, lo, hi, strict=True)}
+                g_edges = t.lo + t.bin_width * np.arange(t.n_levels)
+                # floored at BASIS_FLOOR of the maximum: a fitted curve never makes a structural zero
+                # (a steep tail fitted to few points would underflow the prior's float32 cells)
+                fine = np.maximum(p.cell_lut(th)[:-1] - p.cell_lut(th)[:-1].max(), np.log(BASIS_FLOOR))
+                table_terms[t.feature] = BinnedLikelihood(from_scale(t.scale, g_edges).tolist(), np.exp(fine).tolist(), t.nodata)
             else:
                 self.likelihoods_[t.feature] = {"gamma": float(th[0]), "alpha": p.alpha}
                 self.stderr_[t.feature] = {"gamma": float(se[0]), "alpha": 0.0}
@@ -375,8 +576,22 @@ class PriorEstimator(BaseEstimator):
                 "penalty_sd": self.penalty_sd,
                 "smooth_sd": self.smooth_sd,
                 "loglik_nats": self.loglik_,
+                "defensive_epsilon": self.defensive_,
+                "temper_exponent": self.temper_,
+                "weighted": self.point_stats_.weight is not None,
             }
         }
+        if self.temper_ != 1.0:
+            meta["learned"]["tempering"] = (f"p proportional to r^{self.temper_:.4g} (r: these tables); not representable in "
+                                            "them (the estimator's prior_ and --hybrid-prior apply it)")
+        if self.defensive_:
+            meta["learned"]["defensive_mixture"] = (
+                f"p = (1 - {self.defensive_:.4g}) * p_model + {self.defensive_:.4g} * uniform over the support; "
+                "not representable in these tables (the estimator's prior_ and --hybrid-prior apply it)")
+        forms = {t.feature: t.form + (f" in {t.scale}, {t.n_knots} knots" if t.form in ("increasing", "decreasing", "spline") else "")
+                 + (f", lambda {t.lam:g}" if t.form == "spline" else "") for t in self.terms_ if t.form in BASIS_FORMS}
+        if forms:
+            meta["learned"]["basis_forms"] = {k: f"{v}; written as fine bins" for k, v in forms.items()}
         if self.spatial_bandwidth_:
             meta["learned"]["spatial_term"] = (
                 f"hybrid: also (alpha + (1 - alpha) * KDE / uniform)^gamma, KDE bandwidth {self.spatial_bandwidth_:g} m, "
@@ -397,6 +612,12 @@ class PriorEstimator(BaseEstimator):
             p = self.likelihoods_[SPATIAL]
             logr = kde_logr(self.stack_[SPATIAL].values, p["gamma"], p["alpha"])
             r *= np.exp(logr - logr.max())
+        if self.temper_ != 1.0:
+            pos = r > 0
+            r = np.where(pos, np.exp(self.temper_ * (np.log(np.where(pos, r, 1.0)) - np.log(r.max()))), 0.0)
+        if self.defensive_ > 0:
+            support = r > 0
+            r = (1.0 - self.defensive_) * r / r.sum() + self.defensive_ * support / support.sum()
         return TerrainPrior.from_array(r, self.stack_.grid, self.model_.to_dict())
 
     def score_samples(self, X: np.ndarray) -> np.ndarray:
@@ -428,7 +649,7 @@ class PriorEstimator(BaseEstimator):
         out = {}
         n = max(self.n_used_, 1)
         for k, t in enumerate(self.terms_):
-            if t.form not in DISCRETE_FORMS and t.form != "road":
+            if t.form == "kde":
                 continue
             idx = self.point_stats_.index[:, k]
             area = self.cell_stats_.level_area(k)
@@ -439,7 +660,11 @@ class PriorEstimator(BaseEstimator):
                 ratio = ratio / ratio[t.reference] if ratio[t.reference] > 0 else ratio
                 out[t.feature] = {"levels": list(t.levels), "count": cnt.tolist(), "area_m2": area.tolist(), "ratio": ratio.tolist()}
             else:
+                centre = t.lo + t.bin_width * (np.arange(t.n_levels) + 0.5)
+                if t.form in BASIS_FORMS:
+                    centre = from_scale(t.scale, centre)
                 out[t.feature] = {"bin_lo": (t.lo + t.bin_width * np.arange(t.n_levels)).tolist(), "bin_width": t.bin_width,
+                                  "bin_centre": centre.tolist(), "scale": t.scale if t.form in BASIS_FORMS else "linear",
                                   "count": cnt.tolist(), "area_m2": area.tolist(), "ratio": ratio.tolist()}
         return out
 
@@ -481,6 +706,21 @@ def _usable(pstats: PointStats, params, softened: bool) -> tuple[np.ndarray, dic
     if not softened:
         keep &= ~on_zero
     return keep, {"off_grid": int((~pstats.inside).sum()), "on_zero": int(on_zero.sum()), "detail": detail}
+
+
+def _curve(t: Term, theta: np.ndarray, cov: np.ndarray, n: int = 200) -> dict[str, list[float]]:
+    """A basis term's log r on ``n`` values equally spaced on its scale, with its standard error
+    (nats; parameters at a bound count as fixed there)."""
+    g = np.linspace(t.kappa[0], t.kappa[-1], n)
+    b = basis(t.form, g, t.kappa)
+    return {"value": from_scale(t.scale, g).tolist(), "logr": (b @ theta).tolist(),
+            "se": np.sqrt(np.clip(np.einsum("ij,jk,ik->i", b, cov, b), 0.0, None)).tolist()}
+
+
+def _with_lambda(p: TermParams, lam: float) -> TermParams:
+    """A spline term's parameters with difference-penalty weight ``lam``."""
+    return dataclasses.replace(p, term=dataclasses.replace(p.term, lam=float(lam)),
+                               pen=float(lam) * difference_penalty(p.term.form, p.term.n_knots))
 
 
 def _block_diag(blocks: list[np.ndarray]) -> np.ndarray:

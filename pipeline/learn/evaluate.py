@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 from functools import partial
 
 import numpy as np
+from scipy.special import ndtr
 from sklearn.base import BaseEstimator, clone
 from sklearn.model_selection import GroupKFold, cross_validate
 from sklearn.neighbors import KernelDensity
@@ -27,6 +28,8 @@ from pipeline.learn.kde import block_ids, fit_kde_cv
 from pipeline.learn.sufficient import check_points
 
 MODELS = ("uniform", "naive", "terrain", "kde", "hybrid")
+TIE_NATS = 1e-4
+"""Gains per point closer than this are a tie (the same model up to the optimiser's tolerance)."""
 
 
 @dataclass
@@ -70,12 +73,28 @@ class CVResult:
                 "max": float(g[:, j].max()),
                 "per_fold": g[:, j].tolist(),
             }
+        worst = int(np.argmin(g[:, [self.models.index(m) for m in self.models if m != "uniform"]].max(axis=1)))
+        out["worst_fold"] = worst
         if "hybrid" in self.models:
             h = self.models.index("hybrid")
+            # within TIE_NATS per point the two are the same model (e.g. a hybrid whose γ is 0)
             out["hybrid_fold_wins"] = {
-                m: int((g[:, h] > g[:, j] + 1e-6).sum()) for j, m in enumerate(self.models) if m != "hybrid"
+                m: int((g[:, h] > g[:, j] + TIE_NATS).sum()) for j, m in enumerate(self.models) if m != "hybrid"
+            }
+            out["hybrid_fold_ties"] = {
+                m: int((np.abs(g[:, h] - g[:, j]) <= TIE_NATS).sum()) for j, m in enumerate(self.models) if m != "hybrid"
             }
         return out
+
+
+def kde_log_mass(points: np.ndarray, bandwidth: float, bounds: tuple[float, float, float, float]) -> float:
+    """log of the mass a Gaussian KDE of ``points`` (bandwidth metres) puts on the grid's rectangle
+    (closed form: per point a product of two normal CDF differences); the KDE baseline is divided by
+    it so that it is a density on the grid, like every other model it is compared with."""
+    xmin, ymin, xmax, ymax = bounds
+    px = ndtr((xmax - points[:, 0]) / bandwidth) - ndtr((xmin - points[:, 0]) / bandwidth)
+    py = ndtr((ymax - points[:, 1]) / bandwidth) - ndtr((ymin - points[:, 1]) / bandwidth)
+    return float(np.log(np.mean(px * py)))
 
 
 def default_bandwidths(stack: FeatureStack, n: int = 10) -> np.ndarray:
@@ -103,16 +122,20 @@ class FoldModels(BaseEstimator):
         self.block_size = block_size
         self.n_folds = n_folds
 
-    def fit(self, X: np.ndarray, y: None = None, on_fit: Callable[[int], object] | None = None) -> FoldModels:
-        """Fit the models on X; ``on_fit(1)`` is called when done (a progress bar's update)."""
+    def fit(self, X: np.ndarray, y: None = None, on_fit: Callable[[int], object] | None = None,
+            sample_weight: np.ndarray | None = None) -> FoldModels:
+        """Fit the models on X (with ``sample_weight``); ``on_fit(1)`` is called when done (a progress bar's update)."""
         stack = self.estimator.features
         self.kde_: KernelDensity | None = None
+        self.kde_log_mass_ = 0.0
         if "kde" in self.models or "hybrid" in self.models:
             self.kde_ = fit_kde_cv(X, block_ids(X, stack.grid.bounds[:2], self.block_size), self.bandwidths)
+            self.kde_log_mass_ = kde_log_mass(X, float(self.kde_.bandwidth), stack.grid.bounds)
         params = {"naive": {"method": "naive"}, "terrain": {},
                   "hybrid": {"spatial_bandwidth": float(self.kde_.bandwidth) if self.kde_ else None,
                              "spatial_block": self.block_size, "spatial_folds": self.n_folds}}
-        self.fits_ = {m: clone(self.estimator).set_params(**params[m]).fit(X) for m in self.models if m in params}
+        self.fits_ = {m: clone(self.estimator).set_params(**params[m]).fit(X, sample_weight=sample_weight)
+                      for m in self.models if m in params}
         if on_fit is not None:
             on_fit(1)
         return self
@@ -123,7 +146,7 @@ class FoldModels(BaseEstimator):
         if model == "uniform":
             g = self.estimator.features.grid
             return float(-np.log(g.width * g.height * g.cell_area))
-        ld = self.kde_.score_samples(X) if model == "kde" else self.fits_[model].score_samples(X)
+        ld = self.kde_.score_samples(X) - self.kde_log_mass_ if model == "kde" else self.fits_[model].score_samples(X)
         if not np.all(np.isfinite(ld)):
             raise ValueError(f"block_cv: model {model} gives zero density to {int((~np.isfinite(ld)).sum())} held-out points")
         return float(ld.mean())
@@ -141,6 +164,7 @@ def block_cv(
     bandwidths: np.ndarray | None = None,
     models: tuple[str, ...] = MODELS,
     progress: bool = True,
+    sample_weight: np.ndarray | None = None,
 ) -> CVResult:
     """Spatial block CV of ``models`` (a subset of :data:`MODELS`) at points (N, 2) in metres on
     ``estimator``'s feature stack.
@@ -151,6 +175,7 @@ def block_cv(
     among wider candidates picked wide kernels with large γ that failed on an isolated held-out
     settlement in Swellendam: one partition of the training blocks is a noisy criterion.) Points off the grid, and (with ``on_zero="drop"``) on
     structural zeros, are excluded from every model's test set alike and counted.
+    ``sample_weight`` weights the fits (the KDE baseline and the held-out means are unweighted).
     """
     unknown = set(models) - set(MODELS)
     if unknown or "uniform" not in models:
@@ -158,8 +183,11 @@ def block_cv(
     pts = check_points(points)
     stack = estimator.features
     base = clone(estimator).set_params(spatial_bandwidth=None, method="ml")
-    usable = base.fit(pts).used_mask_
+    usable = base.fit(pts, sample_weight=sample_weight).used_mask_
     pts = pts[usable]
+    fit_params = {"on_fit": None}
+    if sample_weight is not None:
+        fit_params["sample_weight"] = np.asarray(sample_weight, dtype=np.float64)[usable]
     groups = block_ids(pts, stack.grid.bounds[:2], block_size)
     n_blocks = len(np.unique(groups))
     if n_blocks < n_folds:
@@ -168,7 +196,7 @@ def block_cv(
     folds = FoldModels(base, tuple(models), bw_grid, float(block_size), n_folds)
     with tqdm(total=n_folds, desc="block CV", unit="fold", disable=not progress) as bar:
         cv = cross_validate(folds, pts, groups=groups, cv=GroupKFold(n_splits=n_folds),
-                            scoring={m: partial(_held_out, model=m) for m in models}, params={"on_fit": bar.update},
+                            scoring={m: partial(_held_out, model=m) for m in models}, params={**fit_params, "on_fit": bar.update},
                             return_estimator=True, return_indices=True, error_score="raise")
     kdes = [e.kde_ for e in cv["estimator"]]
     return CVResult(
@@ -176,4 +204,6 @@ def block_cv(
         np.array([len(te) for te in cv["indices"]["test"]]),
         np.array([k.bandwidth if k is not None else np.nan for k in kdes], dtype=np.float64), float(block_size),
         int(len(points)), int(len(points) - usable.sum()),
+        # which points each fold held out (indices into ``points``), so peers can be scored on the same folds
+        {"test_index": [np.flatnonzero(usable)[te] for te in cv["indices"]["test"]]},
     )

@@ -13,7 +13,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from common.atomic import atomic_paths  # noqa: E402
-from pipeline.learn.estimator import PriorEstimator  # noqa: E402
+from pipeline.learn.estimator import Z95, PriorEstimator  # noqa: E402
+from pipeline.learn.forms import BASIS_FORMS  # noqa: E402
 from pipeline.learn.sufficient import DISCRETE_FORMS  # noqa: E402
 from pipeline.prior.likelihood import road_likelihood  # noqa: E402
 
@@ -22,7 +23,7 @@ def _coarse(emp: dict, n_bins: int) -> tuple[np.ndarray, np.ndarray, np.ndarray,
     """Merge fine distance bins into ``n_bins`` of equal area: centre (m), points, area, ratio."""
     area = np.asarray(emp["area_m2"])
     cnt = np.asarray(emp["count"])
-    lo = np.asarray(emp["bin_lo"]) + emp["bin_width"] / 2
+    lo = np.asarray(emp["bin_centre"])
     cum = np.cumsum(area) / area.sum()
     group = np.minimum((cum * n_bins).astype(int), n_bins - 1)
     a = np.bincount(group, weights=area, minlength=n_bins)
@@ -55,10 +56,25 @@ def plot_fit(est: PriorEstimator, path: str | Path, n_distance_bins: int = 30) -
             ax.errorbar(x, fitted / scale, yerr=err, fmt="none", ecolor="k", capsize=3, label="95% CI")
             ax.plot(x, ratio / rscale if rscale > 0 else ratio, "o", color="#d95f02", label="points / area")
             ax.set_xticks(x, [f"{lv}\n(n={int(c)})" for lv, c in zip(t.levels, e["count"], strict=True)], fontsize=8)
+        elif t.form in BASIS_FORMS:
+            d, _, a, ratio = _coarse(e, n_distance_bins)
+            c = est.curves_[t.feature]
+            v, lr, se = (np.asarray(c[k]) for k in ("value", "logr", "se"))
+            fine = np.asarray(e["bin_centre"])
+            # area mean 1, like the empirical ratio: the curve's area-weighted mean over the grid
+            scale = (area @ np.exp(np.interp(fine, v, lr))) / area.sum()
+            ax.plot(v, np.exp(lr) / scale, color="#1f78b4", label=f"fitted {t.form} in {t.scale}")
+            ax.fill_between(v, np.exp(lr - Z95 * se) / scale, np.exp(lr + Z95 * se) / scale, color="#1f78b4", alpha=0.25,
+                            label="95% CI (pointwise)")
+            ax.plot(d, ratio, "o", ms=3, color="#d95f02", label="points / area (equal-area bins)")
+            if t.scale == "log1p":
+                ax.set_xscale("symlog", linthresh=1.0)
+            ax.set_yscale("log")
+            ax.set_xlabel(f"{t.feature} ({est.stack_[t.feature].units if est.stack_ is not None else ''})")
         else:
             d, _, a, ratio = _coarse(e, n_distance_bins)
             p = est.likelihoods_[t.feature]
-            fine = np.asarray(e["bin_lo"]) + e["bin_width"] / 2
+            fine = np.asarray(e["bin_centre"])
             scale = (area @ road_likelihood(fine, p["rmd"], p["mv"])) / area.sum()
             # dense near the road, where the form peaks at rmd, sparse far out
             dd = np.unique(np.concatenate([np.linspace(0, min(fine.max(), 10 * p["rmd"]), 300), np.geomspace(1, fine.max(), 300)]))

@@ -19,7 +19,9 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 from scipy import optimize
+from threadpoolctl import threadpool_limits
 
+from pipeline.learn.forms import BASIS_FORMS, basis, difference_penalty, to_scale
 from pipeline.learn.kde import KDE_EPS
 from pipeline.learn.sufficient import DISCRETE_FORMS, CellStats, PointStats, Term
 from pipeline.prior.likelihood import road_likelihood
@@ -42,6 +44,21 @@ class TermParams:
     bin_value: np.ndarray | None = None  # continuous: area-weighted mean value per fine bin (cells)
     alpha: float = 0.01  # KDE term: fixed share of the uniform density mixed into the KDE
     has_area: np.ndarray | None = None  # discrete: levels with area on the grid
+    pen: np.ndarray | None = None  # basis forms: λ·P, the quadratic penalty ½ θᵀ(λP)θ
+
+    def __post_init__(self) -> None:
+        self._basis: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+    def basis(self, value: np.ndarray) -> np.ndarray:
+        """Basis forms: B at raw feature values (cached per array: the fit asks for the same
+        distinct point rows and fine-bin values at every evaluation)."""
+        hit = self._basis.get(id(value))
+        if hit is not None and hit[0] is value:
+            return hit[1]
+        t = self.term
+        b = basis(t.form, to_scale(t.scale, value), t.kappa)
+        self._basis[id(value)] = (value, b)
+        return b
 
     @property
     def size(self) -> int:
@@ -59,6 +76,8 @@ class TermParams:
         if t.form in DISCRETE_FORMS:
             return self.lut(theta)[index]
         lognd = self.lut_nodata
+        if t.form in BASIS_FORMS:
+            return np.where(index >= 0, self.basis(value) @ theta, lognd)
         if t.form == "road":
             r = road_likelihood(value, np.exp(theta[0]), theta[1])
             with np.errstate(divide="ignore"):
@@ -69,6 +88,8 @@ class TermParams:
         """log r per level (fine bin for continuous terms) with log(nodata) last."""
         if self.term.form in DISCRETE_FORMS:
             return self.lut(theta)
+        if self.term.form in BASIS_FORMS:
+            return np.append(self.basis(self.bin_value) @ theta, self.lut_nodata)
         n = len(self.bin_value)
         return np.append(self.logr(theta, np.zeros(n, np.int64), self.bin_value), self.lut_nodata)
 
@@ -82,6 +103,8 @@ class TermParams:
         ok = index >= 0
         if t.form in DISCRETE_FORMS:
             return self.grad_levels(theta, np.bincount(index[ok], weights=weight[ok], minlength=t.n_levels))
+        if t.form in BASIS_FORMS:
+            return self.basis(value).T @ np.where(ok, weight, 0.0)
         return self._grad_values(theta, value[ok], weight[ok])
 
     def grad_levels(self, theta: np.ndarray, per_level: np.ndarray) -> np.ndarray:
@@ -91,6 +114,8 @@ class TermParams:
         return self._grad_values(theta, self.bin_value, per_level)
 
     def _grad_values(self, theta: np.ndarray, d: np.ndarray, w: np.ndarray) -> np.ndarray:
+        if self.term.form in BASIS_FORMS:
+            return self.basis(d).T @ w
         if self.term.form == "road":
             rmd, mv = np.exp(theta[0]), theta[1]
             z = d / rmd - 1.0
@@ -123,6 +148,12 @@ def term_params(
         x0 = np.asarray(start.get("logr", np.zeros(n)), dtype=np.float64)[free]
         x0 = np.where(np.isfinite(x0), x0, 0.0)
         return TermParams(term, free, fixed, x0, [(None, None)] * len(free), has_area=np.asarray(level_area) > 0)
+    if term.form in BASIS_FORMS:
+        pen = term.lam * difference_penalty(term.form, term.n_knots)
+        x0 = np.zeros(pen.shape[0])
+        # monotone forms: non-negative hinge weights; the others are free (the spline is penalised)
+        b = [(0.0, None)] * len(x0) if term.form in ("increasing", "decreasing") else [(None, None)] * len(x0)
+        return TermParams(term, np.zeros(0, np.int64), np.zeros(0), x0, b, bin_value, pen=pen)
     if term.form == "road":
         rmd = float(start.get("rmd", 100.0))
         mv = float(np.clip(start.get("mv", 0.5), MV_MIN, 1.0))
@@ -163,9 +194,10 @@ class Objective:
     def __post_init__(self) -> None:
         sizes = [self.params[k].size for k in self.active]
         self.offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
-        self.n = self.points.index.shape[0]
-        # The points enter only through each term's distinct (level, value) rows and their counts.
-        self._rows = [_distinct_rows(self.points.index[:, k], self.points.value[:, k]) for k in self.active]
+        w = self.points.weights
+        self.n = float(w.sum())  # the weighted likelihood: Σ w_i log r(x_i) − (Σ w_i) log Z
+        # The points enter only through each term's distinct (level, value) rows and their summed weights.
+        self._rows = [_distinct_rows(self.points.index[:, k], self.points.value[:, k], w) for k in self.active]
         self._cidx = np.ascontiguousarray(self.cells.index[:, self.active], dtype=np.int64)
         sizes = [self.params[k].term.n_levels + 1 for k in self.active]
         self._lut_off = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
@@ -203,6 +235,10 @@ class Objective:
         for j, (th, k) in enumerate(zip(self.split(x), self.active, strict=True)):
             p = self.params[k]
             sl = slice(self.offsets[j], self.offsets[j + 1])
+            if p.pen is not None:  # basis forms: the spline's difference penalty (zero for the others)
+                val += 0.5 * float(th @ p.pen @ th)
+                grad[sl] += p.pen @ th
+                continue
             if p.term.form not in DISCRETE_FORMS:  # road and KDE parameters are bounded, not penalised
                 continue
             val += 0.5 * float(th @ th) / self.penalty_sd**2
@@ -279,12 +315,12 @@ def _cell_pass(index, area, luts, lut_off):
     return np.log(z) + top, shares
 
 
-def _distinct_rows(index: np.ndarray, value: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Distinct (level index, value) rows of one term over the points, with their counts."""
+def _distinct_rows(index: np.ndarray, value: np.ndarray, weight: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Distinct (level index, value) rows of one term over the points, with their summed weights."""
     key = np.stack([index.astype(np.float64), np.nan_to_num(value, nan=-np.inf)], axis=1)
-    rows, cnt = np.unique(key, axis=0, return_counts=True)
+    rows, inv = np.unique(key, axis=0, return_inverse=True)
     val = np.where(np.isfinite(rows[:, 1]), rows[:, 1], np.nan)
-    return rows[:, 0].astype(np.int64), val, cnt.astype(np.float64)
+    return rows[:, 0].astype(np.int64), val, np.bincount(inv.ravel(), weights=weight, minlength=len(rows))
 
 
 @dataclass
@@ -321,16 +357,20 @@ def _start_nonlinear(obj: Objective, x0: np.ndarray) -> np.ndarray:
     return x
 
 
-def fit(obj: Objective) -> FitResult:
-    """Minimise −(ℓ − penalty) with L-BFGS-B; covariance = inverse observed information."""
+def fit(obj: Objective, x0: np.ndarray | None = None, ftol: float = 1e-13) -> FitResult:
+    """Minimise −(ℓ − penalty) with L-BFGS-B from ``x0`` (default: the terms' starts, with a search
+    for the road and KDE terms) to relative tolerance ``ftol``; covariance = inverse observed information."""
     if obj.n == 0:
         raise ValueError("no points left to fit (all off the grid or on structural zeros?)")
-    x0 = _start_nonlinear(obj, obj.x0)
+    x0 = _start_nonlinear(obj, obj.x0) if x0 is None else np.clip(x0, *np.array(
+        [(-np.inf if lo is None else lo, np.inf if hi is None else hi) for lo, hi in obj.bounds]).T.reshape(2, -1))
     if x0.size == 0:
         return FitResult(x0, np.zeros((0, 0)), obj.loglik(x0), 0.0, True, "no free parameters", 0, np.zeros(0, bool))
-    res = optimize.minimize(
-        obj, x0, jac=True, method="L-BFGS-B", bounds=obj.bounds, options={"maxiter": 2000, "ftol": 1e-13, "gtol": 1e-9}
-    )
+    # one BLAS thread: L-BFGS-B's small dense products are slower threaded (x9 under a loaded machine)
+    with threadpool_limits(limits=1, user_api="blas"):
+        res = optimize.minimize(
+            obj, x0, jac=True, method="L-BFGS-B", bounds=obj.bounds, options={"maxiter": 2000, "ftol": ftol, "gtol": 1e-9}
+        )
     x = res.x
     lo = np.array([b[0] if b[0] is not None else -np.inf for b in obj.bounds])
     hi = np.array([b[1] if b[1] is not None else np.inf for b in obj.bounds])

@@ -7,6 +7,7 @@ scores) and ``<stem>.fit.png`` (fitted likelihoods against empirical ratios).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -20,14 +21,17 @@ from common.atomic import atomic_paths
 from pipeline.build.region import build_features, unused_features
 from pipeline.config.learn import LearnConfig, load_learn_config
 from pipeline.config.region import RegionConfig
+from pipeline.gis.layers import LayerSpec, read_vector
 from pipeline.gis.targets import read_targets
 from pipeline.learn.estimator import SPATIAL, PriorEstimator
 from pipeline.learn.evaluate import CVResult, block_cv, default_bandwidths
 from pipeline.learn.kde import block_ids, fit_kde_cv
 from pipeline.learn.plots import plot_fit
-from pipeline.learn.sufficient import DISCRETE_FORMS
+from pipeline.learn.sufficient import DISCRETE_FORMS, check_weights
 
 log = logging.getLogger(__name__)
+CATEGORICAL_TYPES = ("mask", "classes", "categories")
+"""Region feature types that are categorical (a ``raster`` feature is when ``categorical = true``)."""
 
 
 @dataclass
@@ -69,27 +73,40 @@ class LearnReport:
             f"points: {est.n_points_} read, {est.n_used_} used, {est.n_off_grid_} off the grid, "
             f"{est.n_on_zero_} on structural zeros {est.on_zero_detail_ or ''} ({est.on_zero})"
         )
+        if est.defensive is not None:
+            how = "cross-fitted ML over block folds" if est.defensive == "cv" else "fixed"
+            lines.append(f"defensive mixture: p = (1 - eps) p_model + eps uniform, eps = {est.defensive_:.4g} ({how})")
+        if est.temper is not None:
+            lines.append(f"tempered: p_model proportional to r^tau, tau = {est.temper_:.4g}")
         if self.hybrid is not None:
             p = self.hybrid.likelihoods_[SPATIAL]
             lines.append(f"hybrid: terrain x (alpha + (1 - alpha) KDE/uniform)^gamma, gamma = {p['gamma']:.3f} "
                          f"(alpha = {p['alpha']:g}), KDE bandwidth {self.hybrid.spatial_bandwidth_:.0f} m")
         if self.cv is not None:
             s = self.cv.summary()
+            nf = s["folds"]
             lines.append(
-                f"spatial block CV: {s['folds']} folds of {s['block_size_m']:g} m blocks, "
-                f"held-out nats/point over uniform ({s['uniform_nats']:.3f} nats/point):"
+                f"spatial block CV: {nf} folds of {s['block_size_m']:g} m blocks, held-out nats/point over uniform "
+                f"({s['uniform_nats']:.3f} nats/point); worst fold = fold {s['worst_fold'] + 1}:"
             )
-            lines.append(f"  {'model':<10}{'pooled':>9}{'mean':>9}{'sd':>8}{'min':>9}{'max':>9}")
+            head = "".join(f"{f'fold {k + 1}':>9}" for k in range(nf))
+            lines.append(f"  {'model':<10}{'pooled':>9}{'worst':>9}" + head)
+            lines.append(f"  {'points':<10}{'':>18}" + "".join(f"{n:>9d}" for n in s["n_test_per_fold"]))
             for m, gsum in s["gain_nats"].items():
-                lines.append(f"  {m:<10}{gsum['pooled']:>9.3f}{gsum['mean']:>9.3f}{gsum['sd']:>8.3f}{gsum['min']:>9.3f}{gsum['max']:>9.3f}")
+                if m == "uniform":
+                    continue
+                lines.append(f"  {m:<10}{gsum['pooled']:>9.3f}{gsum['min']:>9.3f}" + "".join(f"{v:>9.3f}" for v in gsum["per_fold"]))
             if "hybrid_fold_wins" in s:
-                wins = ", ".join(f"{m} {w}/{s['folds']}" for m, w in s["hybrid_fold_wins"].items())
-                lines.append(f"  hybrid beats per fold: {wins}")
+                res = ", ".join(f"{m} {w}/{s['hybrid_fold_ties'][m]}/{nf - w - s['hybrid_fold_ties'][m]}"
+                                for m, w in s["hybrid_fold_wins"].items() if m != "uniform")
+                lines.append(f"  hybrid beats per fold (won/tied/lost of {nf}): {res}")
         return "\n".join(lines)
 
 
 def _jsonable(obj):
     """NaN/inf -> None, numpy -> Python, tuples -> lists (strict JSON)."""
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return _jsonable(dataclasses.asdict(obj))
     if isinstance(obj, dict):
         return {str(k): _jsonable(v) for k, v in obj.items()}
     if isinstance(obj, list | tuple):
@@ -114,6 +131,7 @@ def diagnostics(report: LearnReport) -> dict:
             "converged": [r.success for r in e.fit_results_], "messages": [r.message for r in e.fit_results_],
             "iterations": [r.n_iter for r in e.fit_results_], "at_bound": [r.at_bound for r in e.fit_results_],
             "seconds": e.fit_seconds_, "pass_seconds": e.pass_seconds_,
+            "defensive_epsilon": e.defensive_, "curves": e.curves_, "spline_aic_per_lambda": e.smoothing_aic_,
         }
 
     out = {
@@ -137,45 +155,87 @@ def diagnostics(report: LearnReport) -> dict:
     return _jsonable(out)
 
 
+def read_target_weights(path: str | Path, grid, layer: str | None, column: str) -> np.ndarray:
+    """Per-target weights from ``column`` of the targets file (rows as :func:`read_targets` reads
+    them), validated by :func:`pipeline.learn.sufficient.check_weights`."""
+    path = Path(path)
+    if path.suffix.lower() == ".csv":
+        table = np.genfromtxt(path, delimiter=",", names=True, dtype=np.float64, encoding="utf-8")
+        if column not in (table.dtype.names or ()):
+            raise ValueError(f"{path}: no column {column!r} (--weights); the CSV has {list(table.dtype.names or ())}")
+        values = np.atleast_1d(table[column])
+    else:
+        values = read_vector(LayerSpec("targets", path, "vector", layer=layer), grid, [column]).attributes[column]
+        try:
+            values = np.asarray(values, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"{path}: column {column!r} (--weights) is not numeric") from None
+    return check_weights(values, len(values), f"{path}: column {column!r} (--weights)")
+
+
 def prepare_learning(
     region: str | Path, targets: str | Path, layer: str | None = None, x: str = "x", y: str = "y",
     targets_crs: str | None = None,
 ) -> tuple[RegionConfig, LearnConfig, np.ndarray, PriorEstimator]:
     """The region and learn configs, the target points (metres, grid CRS) and the unfitted estimator
-    they describe: what every learning path (in memory or tiled) starts from."""
+    they describe: what every learning path (in memory or tiled) starts from.
+
+    Features fitted: ``[learn] features``, else every feature of the config except the source of a
+    fitted ``classes`` feature. Each gets its ``[learn.forms.*]`` form, else its ``[likelihood.*]``
+    table's, else (categorical features only) the categorical form; a continuous feature with
+    neither is an error naming it (which form a distance or an elevation should have is the
+    analyst's choice, see docs/learn.md "Forms").
+    """
     config, lc = load_learn_config(region)
-    if config.model is None and lc.features is None:
-        raise ValueError(f"{config.path}: no [likelihood.*] template and no learn.features; nothing says what to fit")
-    fitted = set(lc.features) if lc.features is not None else set(config.model.terms)
-    if lc.features is None:
-        # Without [learn] features the template's tables say what to fit; a feature with none would be
-        # left out of the fit without a word.
-        unused = unused_features(config, fitted)
-        if unused:
+    tables = set(config.model.terms) if config.model is not None else set()
+    with_form = tables | set(lc.forms) | set(lc.flexible)
+    if lc.features is not None:
+        names = list(lc.features)
+        kinds = {n: "categorical" if config.features[n].type in CATEGORICAL_TYPES or config.features[n].categorical
+                 else "continuous" for n in names}
+        no_form = [n for n in names if n not in with_form and kinds[n] == "continuous"]
+        if no_form:
             raise ValueError(
-                f"{config.path}: [features.{unused[0]}] has no [likelihood.{unused[0]}] table, so learn would not fit it"
-                f"{f' (nor {unused[1:]})' if unused[1:] else ''}: add a table (its form and start values) or list "
-                "the features to fit in [learn] features"
+                f"{config.path}: feature {no_form[0]!r}{f' (and {no_form[1:]})' if no_form[1:] else ''} is continuous and has "
+                f"no form: add [learn.forms.{no_form[0]}] form = \"decreasing\" (or increasing, spline, linear, road, bins) "
+                f"or a [likelihood.{no_form[0]}] table, or leave it out of [learn] features")
+    else:
+        names = [n for n in config.features if n in with_form]
+        unused = unused_features(config, set(names))
+        if not names and not unused:
+            raise ValueError(f"{config.path}: no [likelihood.*] template and no learn.features; nothing says what to fit")
+        if unused:
+            # Without [learn] features every feature is fitted; one with no form would be left out without a word.
+            raise ValueError(
+                f"{config.path}: [features.{unused[0]}] has no [likelihood.{unused[0]}] table nor [learn.forms.{unused[0]}], "
+                f"so learn would not fit it{f' (nor {unused[1:]})' if unused[1:] else ''}: give it a form or a table, or "
+                "list the features to fit in [learn] features"
             )
-    ignored = sorted(set(lc.flexible or ()) - fitted)
-    if ignored:
-        raise ValueError(f"{config.path}: [learn] flexible names {ignored}, which this fit does not include (see [learn] features and the [likelihood.*] tables)")
+    for key, given in (("flexible", lc.flexible), ("forms", lc.forms)):
+        ignored = sorted(set(given) - set(names))
+        if ignored:
+            raise ValueError(f"{config.path}: [learn] {key} names {ignored}, which this fit does not include "
+                             "(see [learn] features and the [likelihood.*] tables)")
     pts = read_targets(targets, config.grid, layer, x, y, targets_crs)
     est = PriorEstimator(
-        template=config.model, feature_names=lc.features, penalty_sd=lc.penalty_sd, smooth_sd=lc.smooth_sd,
+        template=config.model, feature_names=tuple(names), penalty_sd=lc.penalty_sd, smooth_sd=lc.smooth_sd,
         on_zero=lc.on_zero, soften=lc.soften, flexible=lc.flexible or None, bin_width=lc.bin_width,
+        forms=dict(lc.forms) or None, defensive=lc.defensive, temper=lc.temper, spatial_block=lc.block_size_m, spatial_folds=lc.folds,
     )
     return config, lc, pts, est
 
 
-def fit_hybrid(est: PriorEstimator, pts: np.ndarray, lc: LearnConfig) -> PriorEstimator:
-    """The hybrid of the fitted terrain estimator ``est``, refitted on points (N, 2) in metres: its KDE
-    bandwidth chosen by block CV (``lc``'s candidates and blocks) on the points ``est`` used."""
+def fit_hybrid(
+    est: PriorEstimator, pts: np.ndarray, lc: LearnConfig, sample_weight: np.ndarray | None = None,
+) -> PriorEstimator:
+    """The hybrid of the fitted terrain estimator ``est``, refitted on points (N, 2) in metres (with
+    ``sample_weight`` per point, if given): its KDE bandwidth chosen by block CV (``lc``'s candidates and
+    blocks) on the points ``est`` used."""
     used = pts[est.used_mask_]
     stack = est.features
     bws = np.asarray(lc.bandwidths_m) if lc.bandwidths_m else default_bandwidths(stack)
     bw = fit_kde_cv(used, block_ids(used, stack.grid.bounds[:2], lc.block_size_m), bws).bandwidth
-    return clone(est).set_params(spatial_bandwidth=float(bw), spatial_block=lc.block_size_m, spatial_folds=lc.folds).fit(pts)
+    return clone(est).set_params(spatial_bandwidth=float(bw), spatial_block=lc.block_size_m, spatial_folds=lc.folds).fit(pts, sample_weight=sample_weight)
 
 
 def learning_inputs(
@@ -199,20 +259,26 @@ def learn_region(
     cv: bool = True,
     hybrid_prior: str | Path | None = None,
     progress: bool = True,
+    weights: str | None = None,
 ) -> LearnReport:
     """Fit, evaluate and write (see the module doc). ``hybrid_prior``: also write the hybrid
-    prior GeoTIFF there (the spatial term cannot be expressed as a likelihood table). Grids larger
-    than memory: :func:`pipeline.tiled.learn.learn_region_tiled`."""
+    prior GeoTIFF there (the spatial term cannot be expressed as a likelihood table). ``weights``: a
+    column of the targets giving each point's weight (default ``[learn] weights``; none: all 1).
+    Grids larger than memory: :func:`pipeline.tiled.learn.learn_region_tiled`."""
     config, lc, pts, est = prepare_learning(region, targets, layer, x, y, targets_crs)
+    column = weights or lc.weights
+    w = read_target_weights(targets, config.grid, layer, column) if column else None
+    if w is not None and len(w) != len(pts):
+        raise ValueError(f"{targets}: column {column!r} (--weights) has {len(w)} values for {len(pts)} targets")
     stack = build_features(config, progress)
-    est.set_params(features=stack).fit(pts)
-    naive = clone(est).set_params(method="naive").fit(pts)
-    hyb = fit_hybrid(est, pts, lc) if lc.hybrid else None
+    est.set_params(features=stack).fit(pts, sample_weight=w)
+    naive = clone(est).set_params(method="naive").fit(pts, sample_weight=w)
+    hyb = fit_hybrid(est, pts, lc, sample_weight=w) if lc.hybrid else None
     result = None
     if cv:
         models = ("uniform", "naive", "terrain", "kde", "hybrid") if lc.hybrid else ("uniform", "naive", "terrain", "kde")
         result = block_cv(pts, est, lc.folds, lc.block_size_m,
-                          np.asarray(lc.bandwidths_m) if lc.bandwidths_m else None, models, progress)
+                          np.asarray(lc.bandwidths_m) if lc.bandwidths_m else None, models, progress, sample_weight=w)
     report = write_report(LearnReport(est, naive, hyb, result, report_paths(out), lc), targets)
     if hybrid_prior is not None and hyb is not None:
         report.paths["hybrid_prior"] = hyb.prior_.write(hybrid_prior)

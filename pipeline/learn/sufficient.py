@@ -19,10 +19,11 @@ import numpy as np
 
 from pipeline.features.stack import FeatureStack
 from pipeline.gis.grid import NODATA_CODE
+from pipeline.learn.forms import BASIS_FORMS, from_scale, knots, to_scale
 
-TermForm = Literal["categorical", "binned", "road", "kde"]
+TermForm = Literal["categorical", "binned", "road", "kde", "linear", "increasing", "decreasing", "spline"]
 DISCRETE_FORMS = ("categorical", "binned")
-CONTINUOUS_FORMS = ("road", "kde")
+CONTINUOUS_FORMS = ("road", "kde", *BASIS_FORMS)
 NODATA_INDEX = -1
 """Level index of a no-data cell or point (its likelihood is the fixed ``Term.nodata``)."""
 
@@ -40,6 +41,9 @@ class Term:
     :func:`pipeline.learn.poisson.kde_logr`) of value log(k + KDE_EPS), k a KDE over the uniform density. ``zeros`` are level
     indices fixed at r = 0 (structural zeros); ``reference`` is the level fixed at r = 1.
     ``bin_width`` (feature units) is the fine bin of continuous forms; ``lo`` their lowest value.
+    Basis forms (:mod:`pipeline.learn.forms`: linear, increasing, decreasing, spline) bin on their
+    ``scale`` g(v) (``lo`` and ``bin_width`` in units of g), with ``n_knots`` knot intervals and,
+    for the spline, the difference-penalty weight ``lam``.
     """
 
     feature: str
@@ -53,6 +57,14 @@ class Term:
     bin_width: float = 1.0
     lo: float = 0.0
     n_fine: int = 1
+    scale: str = "linear"
+    n_knots: int = 8
+    lam: float = 0.0
+
+    @property
+    def kappa(self) -> np.ndarray:
+        """Basis forms: the knots on the scale g over the fine bins' range."""
+        return knots(self.lo, self.lo + self.n_fine * self.bin_width, self.n_knots)
 
     @property
     def n_levels(self) -> int:
@@ -76,6 +88,8 @@ class Term:
                 raise ValueError(f"feature {self.feature!r}: codes {bad[:10].tolist()} are not in the term's {list(self.codes)}")
             return idx
         x = np.asarray(values, dtype=np.float64)
+        if self.form in BASIS_FORMS:
+            x = to_scale(self.scale, x)
         nan = np.isnan(x)
         xs = np.where(nan, self.lo, x)
         if self.form == "binned":
@@ -90,9 +104,13 @@ def with_range(term: Term, values: np.ndarray) -> Term:
     if term.form not in CONTINUOUS_FORMS:
         return term
     finite = values[np.isfinite(values)]
+    if term.form in BASIS_FORMS:
+        finite = to_scale(term.scale, finite)
     if finite.size == 0:
         raise ValueError(f"feature {term.feature!r}: no finite values on the grid")
     lo, hi = float(finite.min()), float(finite.max())
+    if term.form in BASIS_FORMS:  # ``n_fine`` equal bins over [lo, hi] of the scale g
+        return Term(**{**term.__dict__, "lo": lo, "bin_width": (hi - lo) / term.n_fine if hi > lo else 1.0})
     n_fine = max(1, int(np.floor((hi - lo) / term.bin_width)) + 1)
     return Term(**{**term.__dict__, "lo": lo, "n_fine": n_fine})
 
@@ -125,7 +143,10 @@ class CellStats:
         n = self.terms[t].n_levels
         s = np.bincount(idx[ok], weights=(self.area * self.value[:, t])[ok], minlength=n)
         a = np.bincount(idx[ok], weights=self.area[ok], minlength=n)
-        lo = self.terms[t].lo + self.terms[t].bin_width * (np.arange(n) + 0.5)
+        term = self.terms[t]
+        lo = term.lo + term.bin_width * (np.arange(n) + 0.5)
+        if term.form in BASIS_FORMS:
+            lo = from_scale(term.scale, lo)
         return np.where(a > 0, s / np.where(a > 0, a, 1.0), lo)
 
     def level_area(self, t: int) -> np.ndarray:
@@ -137,15 +158,23 @@ class CellStats:
 
 @dataclass
 class PointStats:
-    """Each point's level index and exact value per term; ``inside`` marks points on the grid."""
+    """Each point's level index and exact value per term; ``inside`` marks points on the grid;
+    ``weight`` each point's weight (None: all 1; see :func:`check_weights`)."""
 
     terms: tuple[Term, ...]
     index: np.ndarray
     value: np.ndarray
     inside: np.ndarray
+    weight: np.ndarray | None = None
+
+    @property
+    def weights(self) -> np.ndarray:
+        """Per-point weights (ones when none were given)."""
+        return np.ones(len(self.inside)) if self.weight is None else self.weight
 
     def subset(self, mask: np.ndarray) -> PointStats:
-        return PointStats(self.terms, self.index[mask], self.value[mask], self.inside[mask])
+        w = None if self.weight is None else self.weight[mask]
+        return PointStats(self.terms, self.index[mask], self.value[mask], self.inside[mask], w)
 
 
 def _radix(terms: tuple[Term, ...]) -> np.ndarray:
@@ -239,9 +268,28 @@ def check_points(points: np.ndarray) -> np.ndarray:
     return pts
 
 
-def point_stats(stack: FeatureStack, terms: tuple[Term, ...], points: np.ndarray) -> PointStats:
-    """Level index and exact value per term of points (N, 2) in metres in the grid's CRS."""
+def check_weights(weights: np.ndarray | None, n: int, what: str = "sample_weight") -> np.ndarray | None:
+    """Per-point weights as float (n,), or None; ValueError naming ``what`` and the first bad rows
+    for a wrong length or NaN, infinite, zero or negative weights (a point that should not count is
+    left out of the points, not given weight 0)."""
+    if weights is None:
+        return None
+    w = np.asarray(weights, dtype=np.float64)
+    if w.shape != (n,):
+        raise ValueError(f"{what}: expected one weight per point ({n}), got shape {w.shape}")
+    for bad, name in ((np.isnan(w), "NaN"), (np.isinf(w), "infinite"), (w == 0, "zero"), (w < 0, "negative")):
+        if bad.any():
+            rows = np.flatnonzero(bad)
+            raise ValueError(f"{what}: {rows.size} {name} weights (rows {rows[:10].tolist()}); weights must be finite and > 0")
+    return w
+
+
+def point_stats(stack: FeatureStack, terms: tuple[Term, ...], points: np.ndarray,
+                weights: np.ndarray | None = None) -> PointStats:
+    """Level index and exact value per term of points (N, 2) in metres in the grid's CRS, with
+    their ``weights`` (validated by :func:`check_weights`)."""
     pts = check_points(points)
+    weights = check_weights(weights, len(pts))
     inside = stack.grid.contains(pts[:, 0], pts[:, 1])
     sampled = stack.sample(pts[:, 0], pts[:, 1])
     index = np.empty((pts.shape[0], len(terms)), dtype=np.int64)
@@ -251,4 +299,4 @@ def point_stats(stack: FeatureStack, terms: tuple[Term, ...], points: np.ndarray
         index[:, k] = t.index(x)
         if t.form in CONTINUOUS_FORMS:
             value[:, k] = x
-    return PointStats(tuple(terms), index, value, inside)
+    return PointStats(tuple(terms), index, value, inside, weights)

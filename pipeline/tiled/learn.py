@@ -295,7 +295,11 @@ def learn_region_tiled(
     (``tile`` cells a side) on Dask (``scheduler`` address, or a local in-process cluster), then the same ML
     and naive fits. The spatial block cross-validation and the hybrid need the whole grid and are skipped."""
     config, lc, pts, est = prepare_learning(region, targets, layer, x, y, targets_crs)
-    skipped = ["the spatial block cross-validation"] + (["the hybrid fit"] if lc.hybrid else [])
+    if lc.forms or lc.weights:
+        raise ValueError(f"{config.path}: tiled learning fits the [likelihood.*] tables' forms, unweighted; [learn] forms/weights need the in-memory learn")
+    est.set_params(defensive=None if lc.defensive == "cv" else lc.defensive, temper=None if lc.temper == "cv" else lc.temper)
+    skipped = ["the spatial block cross-validation"] + (["the hybrid fit"] if lc.hybrid else []) + (
+        ["the defensive mixture's cross-fitted epsilon"] if lc.defensive == "cv" else [])
     log.info("tiled learning: skipping %s (they need the whole grid)", " and ".join(skipped))
     with get_client(scheduler) as client:
         cells, points = tiled_stats(config, est, pts, client, tile, progress)

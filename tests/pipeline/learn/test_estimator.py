@@ -257,6 +257,12 @@ SKLEARN_CHECKS_THAT_CANNOT_APPLY = {
          "check_f_contiguous_array_estimator", "check_methods_sample_order_invariance", "check_methods_subset_invariance",
          "check_fit2d_1sample", "check_fit2d_1feature", "check_dict_unchanged", "check_fit2d_predict1d"],
         _NOT_XY),
+    # sample_weight: the same contract on points on the grid is test_weights.py's (lists and Series,
+    # not overwritten, zero weights refused by name, integer weights = repeated points)
+    **dict.fromkeys(["check_sample_weights_pandas_series", "check_sample_weights_not_an_array",
+                     "check_sample_weights_shape", "check_sample_weights_not_overwritten"], _OFF_GRID),
+    **dict.fromkeys(["check_sample_weights_list", "check_all_zero_sample_weights_error",
+                     "check_sample_weight_equivalence_on_dense_data"], _NOT_XY),
     **dict.fromkeys(["check_estimator_sparse_tag", "check_estimator_sparse_array", "check_estimator_sparse_matrix"],
                     "points are a dense (N, 2) array; check_points refuses sparse input with its own message"),
 }

@@ -1,0 +1,127 @@
+"""`terrain-prior learn` with forms, weights and the defensive mixture; the honest CV table (folds,
+ties, the KDE baseline normalised over the grid)."""
+
+from __future__ import annotations
+
+import json
+import tomllib
+import warnings
+
+import numpy as np
+import pytest
+from scipy import integrate
+from sklearn.neighbors import KernelDensity
+
+from pipeline.build.region import build_features, build_prior
+from pipeline.cli import main
+from pipeline.config.learn import load_learn_config
+from pipeline.config.region import ConfigError
+from pipeline.learn.evaluate import CVResult, kde_log_mass
+from pipeline.prior.likelihood import BinnedLikelihood, LikelihoodModel
+from tests.pipeline.gis_helpers import write_config
+from tests.pipeline.test_learn_cli import cut_config
+
+
+@pytest.fixture(scope="module")
+def weighted_targets(tmp_path_factory):
+    """400 targets of the cut's hand-set prior in a CSV with a weight column ``w`` (1..3)."""
+    tmp = tmp_path_factory.mktemp("learn_run")
+    region, _ = load_learn_config(cut_config(tmp, None))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        stack = build_features(region, progress=False)
+    pts = build_prior(stack, region.model).sample(400, np.random.default_rng(0))
+    w = np.random.default_rng(1).integers(1, 4, len(pts))
+    csv = tmp / "targets.csv"
+    np.savetxt(csv, np.column_stack([pts, w]), delimiter=",", header="x,y,w", comments="")
+    return tmp, csv, pts, w
+
+
+def test_learn_with_forms_weights_and_defensive_mixture(weighted_targets, tmp_path, capsys) -> None:
+    _, csv, _, _ = weighted_targets
+    doc = tomllib.loads(cut_config(tmp_path, {"folds": 2, "block_size_m": 1500.0, "hybrid": False, "defensive": 0.05,
+                                              "bandwidths_m": [200.0, 600.0]}).read_text())
+    doc["features"]["elevation"] = {"type": "elevation", "layer": "dem"}
+    doc["learn"]["forms"] = {"road_distance": {"form": "decreasing", "scale": "log1p", "knots": 4},
+                             "elevation": {"form": "spline", "knots": 4, "smoothing": 1.0}}
+    cfg = write_config(tmp_path / "forms.toml", doc)
+    out = tmp_path / "m.toml"
+    assert main(["-q", "learn", str(cfg), "--targets", str(csv), "--weights", "w", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "eps = 0.05 (fixed)" in printed and "fold 1" in printed and "fold 2" in printed and "worst" in printed
+    model = LikelihoodModel.read_toml(out)
+    assert isinstance(model.terms["road_distance"], BinnedLikelihood) and "elevation" in model.terms
+    diag = json.loads(out.with_suffix(".diagnostics.json").read_text())
+    assert diag["ml"]["likelihoods"]["elevation"] and model.meta["learned"]["defensive_epsilon"] == 0.05
+    assert model.meta["learned"]["weighted"] is True
+    assert len(diag["cv"]["gain_nats"]["terrain"]["per_fold"]) == 2
+
+
+def test_bad_weights_are_named_errors(weighted_targets, tmp_path, capsys) -> None:
+    _, csv, pts, w = weighted_targets
+    cfg = cut_config(tmp_path, {"hybrid": False})
+    for value, name in [(0, "zero"), (-2, "negative"), ("nan", "NaN")]:
+        bad = tmp_path / f"bad_{name}.csv"
+        rows = [f"{x},{y},{v}" for (x, y), v in zip(pts, w, strict=True)]
+        rows[5] = f"{pts[5, 0]},{pts[5, 1]},{value}"
+        bad.write_text("x,y,w\n" + "\n".join(rows) + "\n")
+        out = tmp_path / "m.toml"
+        assert main(["-q", "learn", str(cfg), "--targets", str(bad), "--weights", "w", "--out", str(out), "--no-cv"]) == 1
+        err = capsys.readouterr().err
+        assert f"error: {bad}: column 'w' (--weights): 1 {name} weights (rows [5])" in err and "Traceback" not in err
+        assert not out.exists()
+    assert main(["-q", "learn", str(cfg), "--targets", str(csv), "--weights", "mass", "--out", str(tmp_path / "m.toml"), "--no-cv"]) == 1
+    assert "no column 'mass' (--weights)" in capsys.readouterr().err
+
+
+def test_a_continuous_feature_without_a_form_is_an_error_naming_it(weighted_targets, tmp_path, capsys) -> None:
+    _, csv, _, _ = weighted_targets
+    doc = tomllib.loads(cut_config(tmp_path, {"hybrid": False}).read_text())
+    doc["features"]["elevation"] = {"type": "elevation", "layer": "dem"}
+    cfg = write_config(tmp_path / "elev.toml", doc)
+    out = tmp_path / "m.toml"
+    assert main(["-q", "learn", str(cfg), "--targets", str(csv), "--out", str(out), "--no-cv"]) == 1
+    assert "[features.elevation] has no [likelihood.elevation] table nor [learn.forms.elevation]" in capsys.readouterr().err
+    doc["learn"]["features"] = ["water", "elevation"]
+    cfg = write_config(tmp_path / "listed.toml", doc)
+    assert main(["-q", "learn", str(cfg), "--targets", str(csv), "--out", str(out), "--no-cv"]) == 1
+    assert "feature 'elevation' is continuous and has no form" in capsys.readouterr().err
+    doc["learn"]["forms"] = {"elevation": {"form": "linear"}}
+    cfg = write_config(tmp_path / "formed.toml", doc)
+    assert main(["-q", "learn", str(cfg), "--targets", str(csv), "--out", str(out), "--no-cv"]) == 0
+    assert set(LikelihoodModel.read_toml(out).terms) == {"water", "elevation"}
+
+
+def test_form_config_errors_name_file_and_key(tmp_path) -> None:
+    for forms, key in [({"road_distance": {"form": "wavy"}}, "learn.forms.road_distance.form"),
+                       ({"road_distance": {"form": "spline", "colour": 1}}, "learn.forms.road_distance: unknown keys"),
+                       ({"road_distance": {"scale": "log1p"}}, "no form"),
+                       ({"nope": {"form": "linear"}}, "learn.forms: no feature 'nope'")]:
+        cfg = cut_config(tmp_path, {"forms": forms})
+        with pytest.raises(ConfigError, match=key) as info:
+            load_learn_config(cfg)
+        assert str(cfg) in str(info.value)
+    for bad in ("maybe", 1.5, True):
+        with pytest.raises(ConfigError, match="learn.defensive"):
+            load_learn_config(cut_config(tmp_path, {"defensive": bad}))
+
+
+def test_ties_are_counted_as_ties() -> None:
+    scores = np.array([[-10.0, -7.0, -8.0, -7.0], [-10.0, -6.0, -6.5, -6.0], [-10.0, -7.5, -7.3, -7.2]])
+    cv = CVResult(("uniform", "terrain", "kde", "hybrid"), scores, np.array([10, 20, 30]), np.ones(3), 1000.0, 60, 0)
+    s = cv.summary()
+    assert s["hybrid_fold_wins"]["terrain"] == 1 and s["hybrid_fold_ties"]["terrain"] == 2
+    assert s["hybrid_fold_wins"]["kde"] == 3 and s["hybrid_fold_ties"]["kde"] == 0
+    assert s["worst_fold"] == 2  # the fold whose best model gains least
+
+
+def test_kde_mass_on_the_grid_matches_dense_integration() -> None:
+    rng = np.random.default_rng(0)
+    pts = rng.uniform([0, 0], [1000, 600], (40, 2))
+    pts[:5] = [[10, 10], [990, 5], [500, 595], [3, 300], [700, 1]]  # near the edges: mass leaks out
+    h = 120.0
+    kde = KernelDensity(bandwidth=h).fit(pts)
+    dense, _ = integrate.nquad(lambda x, y: float(np.exp(kde.score_samples([[x, y]]))[0]), [[0, 1000], [0, 600]],
+                               opts={"epsabs": 1e-6, "limit": 100})
+    assert np.isclose(np.exp(kde_log_mass(pts, h, (0.0, 0.0, 1000.0, 600.0))), dense, rtol=1e-4)
+    assert dense < 0.95  # the plane-normalised KDE would have been scored as if it were 1
