@@ -82,7 +82,6 @@ def child(n: int, n_reports: int, n_clusters: int, cluster_cells: float, cache_g
     scalespace.integrate_pixels(small, *(a[:BLOCK] for a in px_small), False)  # compile, build its levels
     scalespace.integrate_pixels(small, *px_small, False)  # all levels the stream needs
     whole_s = _blocks(lambda *a: scalespace.integrate_pixels(small, *a, False), px_small)
-    del small
     source = RepeatedTile(tile, (n, n))
     pyr = lazy.LazyPyramid(source, cache_bytes=int(cache_gib * 2**30))
     pyr.integrate_pixels(*stream((4096, 4096), 1000, 4, cluster_cells, seed=2))  # compile (another corner's tiles)
