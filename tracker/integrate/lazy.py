@@ -137,6 +137,13 @@ class LazyPyramid:
             if all((below[0], a, b) in self._tiles for a in range(below[1], below[2] + 1) for b in range(below[3], below[4] + 1)):
                 break
             plan.append(below)
+        # Two consecutive levels' rectangles must fit beside the pinned tiles, or building one level
+        # would evict the tiles below it that the next build reads (and rebuild them, again and again).
+        sizes = [(v1 - v0 + 1) * (u1 - u0 + 1) for _, v0, v1, u0, u1 in plan]
+        need = max(a + b for a, b in zip(sizes, [*sizes[1:], 0], strict=True)) + len(self._pinned)
+        if need * self.blocks**2 > self.pool.shape[0]:
+            raise MemoryError(f"LazyPyramid: a cache of {self.pool.nbytes / 2**20:.0f} MiB cannot hold the tiles one batch needs "
+                              f"({need} tiles of {self.blocks**2} blocks at once)")
         threads = nb.get_num_threads()
         # A tile's kernels take ~50 µs on one thread; a parallel launch can cost more than that on busy cores.
         nb.set_num_threads(1)
