@@ -5,6 +5,7 @@ Each input layer is read once and shared by the features that use it.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import resource
 import warnings
@@ -197,9 +198,21 @@ def build_features(config: RegionConfig, progress: bool = True) -> FeatureStack:
     return stack
 
 
+BAND_ROWS = 512
+"""Rows of the grid whose likelihood is evaluated at a time: each table's grid-size float64 temporaries
+(several for the road distance's formula) shrink to a band's."""
+
+
 def _likelihood(stack: FeatureStack, model: LikelihoodModel) -> np.ndarray:
-    """Unnormalised r = Π r_i(F_i) of a feature stack; PriorError naming a table that alone zeroes the grid."""
-    r = model.evaluate(stack)
+    """Unnormalised r = Π r_i(F_i) of a feature stack, band of rows by band (the same products, cell by
+    cell); PriorError naming a table that alone zeroes the grid."""
+    grid = stack.grid
+    r = np.empty(grid.shape, dtype=np.float64)
+    for r0 in range(0, grid.height, BAND_ROWS):
+        rows = min(BAND_ROWS, grid.height - r0)
+        band = FeatureStack(grid.window_grid(r0, 0, rows, grid.width),
+                            {n: dataclasses.replace(f, values=f.values[r0 : r0 + rows]) for n, f in stack.features.items()})
+        r[r0 : r0 + rows] = model.evaluate(band)
     if not r.any():  # name the culprit when one table alone zeroes the grid
         for name, term in model.terms.items():
             if not term(stack[name]).any():
