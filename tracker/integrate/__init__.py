@@ -13,6 +13,7 @@ independent dense reference. Anything the tracker or the metrics call to integra
 
 from __future__ import annotations
 
+import warnings
 from typing import Literal, Protocol
 
 import numpy as np
@@ -172,7 +173,11 @@ def _integrate_rest(prior, uc, vc, cuu, cuv, cvv, squared, method, n_terraces, n
         near = None if handled.all() else np.flatnonzero(handled)
         px = (uc, vc, cuu, cuv, cvv) if near is None else tuple(a[near] for a in (uc, vc, cuu, cuv, cvv))
         if prior.grid.height * prior.grid.width > scalespace.MAX_CELLS:
-            values, counts = lazy_pyramid(prior, squared).integrate_pixels(*px)  # the same numbers, per tile
+            try:
+                values, counts = lazy_pyramid(prior, squared).integrate_pixels(*px)  # the same numbers, per tile
+            except MemoryError as exc:  # wide Gaussians: the tiles below one tile outgrow the cache
+                warnings.warn(f"integrate: {exc}; using the terraces for this batch", stacklevel=4)
+                values, counts = np.zeros(px[0].shape[0]), np.zeros(px[0].shape[0], np.int64)
         else:
             values, counts = scalespace.integrate_pixels(prior, *px, squared)
         if near is None:
