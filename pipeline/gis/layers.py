@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import shutil
 import tempfile
 import warnings
@@ -25,7 +26,8 @@ import rasterio.errors
 import shapely
 from rasterio.crs import CRS
 from rasterio.enums import Resampling
-from rasterio.warp import reproject
+from rasterio.warp import reproject, transform_bounds
+from rasterio.windows import Window
 
 from pipeline.gis.crs import to_pyproj, transformer
 from pipeline.gis.grid import NODATA_CODE, Grid
@@ -220,6 +222,21 @@ def read_vector(spec: LayerSpec, grid: Grid, columns: list[str] | None = None) -
     return VectorLayer(spec.name, geoms, attributes, n_repaired)
 
 
+RASTER_MARGIN = 3
+"""Source pixels read beyond the grid's footprint on each side (bilinear resampling reads 2 x 2)."""
+
+
+def covering_window(src: rasterio.io.DatasetReader, grid: Grid) -> Window | None:
+    """The window of ``src`` that covers ``grid`` plus RASTER_MARGIN pixels, clipped to it; None off the raster."""
+    bounds = grid.bounds if src.crs == grid.crs else transform_bounds(grid.crs, src.crs, *grid.bounds, densify_pts=21)
+    win = src.window(*bounds)
+    c0 = max(0, math.floor(win.col_off) - RASTER_MARGIN)
+    r0 = max(0, math.floor(win.row_off) - RASTER_MARGIN)
+    c1 = min(src.width, math.ceil(win.col_off + win.width) + RASTER_MARGIN)
+    r1 = min(src.height, math.ceil(win.row_off + win.height) + RASTER_MARGIN)
+    return None if c1 <= c0 or r1 <= r0 else Window(c0, r0, c1 - c0, r1 - r0)
+
+
 def read_raster(spec: LayerSpec, grid: Grid, categorical: bool = False) -> np.ndarray:
     """One raster band resampled onto ``grid``: bilinear float64 with NaN no data, or (categorical)
     nearest int32 codes with ``NODATA_CODE`` no data."""
@@ -231,9 +248,12 @@ def read_raster(spec: LayerSpec, grid: Grid, categorical: bool = False) -> np.nd
                 raise LayerError(f"{_where(spec)}: the raster has no CRS; cannot place it on the grid")
             if not 1 <= spec.band <= src.count:
                 raise LayerError(f"{_where(spec)}: band {spec.band} requested, the raster has {src.count}")
-            data = src.read(spec.band)
+            # Only the part under the grid (the tiled build's windows): a region's corner of a large DEM
+            # does not read, convert and reproject the whole raster.
+            window = covering_window(src, grid)
+            data = src.read(spec.band, window=window)
             src_nodata = src.nodata
-            src_transform, src_crs = src.transform, src.crs
+            src_transform, src_crs = (src.transform if window is None else src.window_transform(window)), src.crs
     except rasterio.errors.RasterioIOError as exc:
         raise LayerError(f"{_where(spec)}: not a readable raster: {exc}") from None
     if categorical:

@@ -268,8 +268,9 @@ class TerrainPrior:
         self.model = dict(model or {})
 
     @classmethod
-    def from_array(cls, r: np.ndarray, grid: Grid, model: dict | None = None) -> TerrainPrior:
-        """Normalise a non-negative (H, W) array of relative likelihoods into a density per m^2."""
+    def from_array(cls, r: np.ndarray, grid: Grid, model: dict | None = None, reuse: bool = False) -> TerrainPrior:
+        """Normalise a non-negative (H, W) array of relative likelihoods into a density per m^2; with
+        ``reuse`` a C-contiguous float64 ``r`` is overwritten by the density (no second grid-size array)."""
         r = np.asarray(r, dtype=np.float64)
         if r.shape != grid.shape:
             raise PriorError(f"likelihood array shape {r.shape} does not match grid {grid.shape}")
@@ -281,12 +282,13 @@ class TerrainPrior:
             raise PriorError(
                 "the likelihood table makes r zero everywhere on the grid; check for structural zeros covering the region"
             )
-        density = np.empty(grid.shape, dtype=np.float64)
+        r = np.ascontiguousarray(r)
+        density = r if reuse else np.empty(grid.shape, dtype=np.float64)  # each cell is read before it is written
         sat = np.empty((grid.height + 1, grid.width + 1), dtype=np.float64)
         sat2 = np.empty_like(sat)
         zeros = np.zeros(grid.width + 1)
         sat[0], sat2[0] = zeros, zeros
-        density_table_rows(np.ascontiguousarray(r), total, grid.cell_area, zeros, zeros, density, sat[1:], sat2[1:])
+        density_table_rows(r, total, grid.cell_area, zeros, zeros, density, sat[1:], sat2[1:])
         return cls(grid, density, sat, sat2, model)
 
     @classmethod

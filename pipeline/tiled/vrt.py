@@ -5,7 +5,6 @@ its own transform) and a vector layer behind a spatial filter. Written as XML wi
 from __future__ import annotations
 
 import dataclasses
-import math
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -17,14 +16,12 @@ from rasterio.crs import CRS
 from rasterio.windows import Window
 
 from pipeline.gis.grid import Grid
-from pipeline.gis.layers import LayerSpec
+from pipeline.gis.layers import LayerSpec, covering_window
 
 _GDAL_TYPES = {
     "uint8": "Byte", "int8": "Int8", "uint16": "UInt16", "int16": "Int16", "uint32": "UInt32",
     "int32": "Int32", "uint64": "UInt64", "int64": "Int64", "float32": "Float32", "float64": "Float64",
 }
-RASTER_MARGIN = 3
-"""Source cells kept around a window: bilinear reads 2 x 2, and the window edge rounds outward."""
 
 
 def _element(parent: ET.Element, tag: str, text: str | None = None, **attrib: str) -> ET.Element:
@@ -34,9 +31,8 @@ def _element(parent: ET.Element, tag: str, text: str | None = None, **attrib: st
 
 
 def windowed_raster_layer(spec: LayerSpec, grid: Grid, folder: Path) -> LayerSpec:
-    """A VRT in ``folder`` of the part of a raster layer that covers ``grid`` (plus RASTER_MARGIN), so
+    """A VRT in ``folder`` of the part of a raster layer that covers ``grid`` (plus :data:`pipeline.gis.layers.RASTER_MARGIN`), so
     :func:`pipeline.gis.layers.read_raster` reads that part only, with its own transform and no data."""
-    from rasterio.warp import transform_bounds
 
     try:
         src = rasterio.open(spec.path)
@@ -45,14 +41,10 @@ def windowed_raster_layer(spec: LayerSpec, grid: Grid, folder: Path) -> LayerSpe
     with src:
         if src.crs is None or not 1 <= spec.band <= src.count:
             return spec  # likewise: read_raster's own messages
-        bounds = grid.bounds if src.crs == grid.crs else transform_bounds(grid.crs, src.crs, *grid.bounds, densify_pts=21)
-        win = src.window(*bounds)
-        c0 = max(0, math.floor(win.col_off) - RASTER_MARGIN)
-        r0 = max(0, math.floor(win.row_off) - RASTER_MARGIN)
-        c1 = min(src.width, math.ceil(win.col_off + win.width) + RASTER_MARGIN)
-        r1 = min(src.height, math.ceil(win.row_off + win.height) + RASTER_MARGIN)
-        if c1 <= c0 or r1 <= r0:  # off the raster: read_raster then reports no data as it would
+        win = covering_window(src, grid)
+        if win is None:  # off the raster: read_raster then reports no data as it would
             return spec
+        c0, r0, c1, r1 = win.col_off, win.row_off, win.col_off + win.width, win.row_off + win.height
         t = src.window_transform(Window(c0, r0, c1 - c0, r1 - r0))
         dtype = src.dtypes[spec.band - 1]
         nodata = src.nodata

@@ -20,6 +20,7 @@ import numpy as np
 
 from pipeline.prior import TerrainPrior
 from tracker.integrate import scalespace
+from tracker.integrate.lazy import lazy_pyramid
 from tracker.integrate.reference import covered_mass, reference_integrate
 from tracker.integrate.terraces import (
     MASS,
@@ -116,8 +117,9 @@ def integrate_checked(
     ``method="scalespace"`` (default) integrates with the prior's Gaussian pyramid
     (:mod:`tracker.integrate.scalespace`) the Gaussians that have most of their mass on the grid and sends
     the rest (centres more than ``NEAR_RHO`` σ off the grid, spreads wider than the grid, thinner
-    than ~500:1) to the terraces; ``method="terraces"`` uses the terraces for all, as does
-    ``"scalespace"`` (with a warning) on grids of more than ``scalespace.MAX_CELLS`` cells.
+    than ~500:1) to the terraces; ``method="terraces"`` uses the terraces for all. On grids of more
+    than ``scalespace.MAX_CELLS`` cells the pyramid is built lazily, per tile where the Gaussians fall,
+    in a bounded cache (:mod:`tracker.integrate.lazy`), with the same integrals.
     Terrace settings: ``shear = 0`` keeps every ellipse at ``n_strips`` strips; ``scheme="paper"``
     uses the paper's equal-mass terraces (with ``mass = 0.99`` its stop). Raises ``ValueError`` for
     settings out of range.
@@ -165,20 +167,19 @@ def _integrate_rest(prior, uc, vc, cuu, cuv, cvv, squared, method, n_terraces, n
     """The pyramid and the terraces for the Gaussians (pixel units) that are not tiny; results to ``out[where]``."""
     result = np.empty(uc.shape[0])
     rest = np.arange(uc.shape[0])
-    if method == "scalespace" and prior.grid.height * prior.grid.width > scalespace.MAX_CELLS:
-        warnings.warn(
-            f"integrate: the prior's {prior.grid.height} x {prior.grid.width} grid is above scalespace.MAX_CELLS "
-            f"({scalespace.MAX_CELLS:,} cells; its pyramid would take ~{scalespace.pyramid_bytes(prior.grid.shape) / 2**30:.1f} GiB): "
-            "using the terraces",
-            stacklevel=4,
-        )
-        method = "terraces"
     if method == "scalespace" and rest.size:
         h, w = prior.grid.shape
         handled = near_grid(uc, vc, cuu, cuv, cvv, float(w), float(h), NEAR_RHO, NEAR_SPREAD)
         near = None if handled.all() else np.flatnonzero(handled)
         px = (uc, vc, cuu, cuv, cvv) if near is None else tuple(a[near] for a in (uc, vc, cuu, cuv, cvv))
-        values, counts = scalespace.integrate_pixels(prior, *px, squared)
+        if prior.grid.height * prior.grid.width > scalespace.MAX_CELLS:
+            try:
+                values, counts = lazy_pyramid(prior, squared).integrate_pixels(*px)  # the same numbers, per tile
+            except MemoryError as exc:  # wide Gaussians: the tiles below one tile outgrow the cache
+                warnings.warn(f"integrate: {exc}; using the terraces for this batch", stacklevel=4)
+                values, counts = np.zeros(px[0].shape[0]), np.zeros(px[0].shape[0], np.int64)
+        else:
+            values, counts = scalespace.integrate_pixels(prior, *px, squared)
         if near is None:
             result, handled = values, counts > 0
         else:

@@ -56,8 +56,20 @@ nodes' 4 x 4 B-spline footprints reach (35 x 35 float32, 4.9 KiB), so a look-up 
 cells on a 2,000² prior (lattices larger than the cache), 20 % more memory; a power of two keeps
 the block arithmetic to shifts."""
 MAX_CELLS = 25_000_000
-"""Largest grid (cells) :func:`tracker.integrate.integrate` builds a pyramid for (~3.5 GiB peak at
-this size, see :func:`pyramid_bytes`); larger priors are integrated with the terraces."""
+"""Largest grid (cells) :func:`tracker.integrate.integrate` builds a whole pyramid for (~3.5 GiB peak
+at this size, see :func:`pyramid_bytes`); larger priors get a :class:`tracker.integrate.lazy.LazyPyramid`
+(the same lattices, built per tile where Gaussians fall, in a bounded cache)."""
+
+
+def lattice(k: int, shape: tuple[int, int]) -> tuple[float, float, float, int, int]:
+    """Level ``k`` of a pyramid of a grid of ``shape`` (H, W) cells: its scale s_k and node spacing h
+    (cells), the pixel coordinate of node 0 on both axes, and its node counts (nu, nv); node j on an
+    axis is at ``origin + h * j``."""
+    s = S0 * RATIO**k
+    h = s / GAMMA
+    height, width = shape
+    pad = PAD * s + 2.0 * h
+    return s, h, -pad, int(np.ceil((width + 2 * pad) / h)) + 1, int(np.ceil((height + 2 * pad) / h)) + 1
 
 
 def pyramid_bytes(shape: tuple[int, int]) -> float:
@@ -105,12 +117,9 @@ class Pyramid:
             new = []
             k = p.scale.size
             while True:
-                s = S0 * RATIO**k
-                h = s / GAMMA
-                height, width = self.field.shape
-                pad = PAD * s + 2.0 * h
-                u = -pad + h * np.arange(int(np.ceil((width + 2 * pad) / h)) + 1)
-                v = -pad + h * np.arange(int(np.ceil((height + 2 * pad) / h)) + 1)
+                s, h, origin, n_u, n_v = lattice(k, self.field.shape)
+                u = origin + h * np.arange(n_u)
+                v = origin + h * np.arange(n_v)
                 if k == 0:
                     values = _exact_level(self.field, u, v, s)
                 else:
@@ -122,7 +131,7 @@ class Pyramid:
                         ps, ph, po = p.scale[-1], p.step[-1], p.u0[-1]
                         coef = _untile(p.coef[p.offset[-2] :], (int(p.nv[-1]), int(p.nu[-1])))
                     values = _smooth(_node_values(coef), po, ph, u, v, np.sqrt(s * s - ps * ps))
-                new.append((s, h, -pad, values.shape, _prefilter(values)))
+                new.append((s, h, origin, values.shape, _prefilter(values)))
                 k += 1
                 if s >= top_scale:
                     break
@@ -361,10 +370,16 @@ def _rule(rho, xs, ws):
 # --- kernels ----------------------------------------------------------------------------------
 
 
+NO_SLOTS = np.zeros(0, np.int32)
+"""The ``slots`` of a whole pyramid's levels: each level's blocks lie in order at its offset."""
+
+
 @nb.njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
-def _bspline(coef, off, nu, nv, u0, v0, h, u, v):
-    """The cubic B-spline with the (nv, nu) coefficients stored in blocks at ``coef[off:]``, at pixel
-    point (u, v); 0 off the lattice."""
+def _spline_at(coef, slots, off, nu, nv, u0, v0, h, u, v):
+    """The cubic B-spline of one level at pixel point (u, v), 0 off its (nv, nu) lattice. Its blocks
+    (see :func:`_tile`) lie in order from ``coef[off]`` when ``slots`` is empty (a whole pyramid), else
+    block b is at slot ``slots[off + b]`` of (TILE + 3)² floats, and NaN marks a block that is not
+    there (:mod:`tracker.integrate.lazy` builds it and asks again)."""
     x = (u - u0) / h
     y = (v - v0) / h
     i = int(np.floor(x))
@@ -386,7 +401,14 @@ def _bspline(coef, off, nu, nv, u0, v0, h, u, v):
     # The footprint's rows j-1..j+2 and columns i-1..i+2 all lie in the block of (j, i) (see _tile).
     width = TILE + 3
     block = (j // TILE) * ((nu + TILE - 1) // TILE) + i // TILE
-    p = off + block * width * width + (j % TILE) * width + i % TILE
+    if slots.shape[0] == 0:
+        p = off + block * width * width
+    else:
+        slot = slots[off + block]
+        if slot < 0:
+            return np.nan
+        p = slot * (width * width)
+    p += (j % TILE) * width + i % TILE
     r0 = wx0 * coef[p] + wx1 * coef[p + 1] + wx2 * coef[p + 2] + wx3 * coef[p + 3]
     p += width
     r1 = wx0 * coef[p] + wx1 * coef[p + 1] + wx2 * coef[p + 2] + wx3 * coef[p + 3]
@@ -395,6 +417,12 @@ def _bspline(coef, off, nu, nv, u0, v0, h, u, v):
     p += width
     r3 = wx0 * coef[p] + wx1 * coef[p + 1] + wx2 * coef[p + 2] + wx3 * coef[p + 3]
     return wy0 * r0 + wy1 * r1 + wy2 * r2 + wy3 * r3
+
+
+@nb.njit(cache=True, error_model="numpy", fastmath=FAST)
+def _bspline(coef, off, nu, nv, u0, v0, h, u, v):
+    """:func:`_spline_at` of a whole pyramid's level stored in blocks at ``coef[off:]``."""
+    return _spline_at(coef, NO_SLOTS, off, nu, nv, u0, v0, h, u, v)
 
 
 PHI_STEP = 1.0 / 256.0
@@ -465,8 +493,9 @@ def _window(values, tab, u, v, s, wu):
 
 
 @nb.njit(cache=True, error_model="numpy", fastmath=FAST)
-def _one(values, tab, coef, scale, step, u0, v0, nu, nv, offset, uc, vc, cuu, cuv, cvv, xs1, ws1, xs2, ws2, wu):
-    """∫ G r for one Gaussian in pixel units (mean (uc, vc), covariance [[cuu, cuv], [cuv, cvv]] cells²).
+def _one(values, tab, coef, slots, scale, step, u0, v0, nu, nv, offset, uc, vc, cuu, cuv, cvv, xs1, ws1, xs2, ws2, wu):
+    """∫ G r for one Gaussian in pixel units (mean (uc, vc), covariance [[cuu, cuv], [cuv, cvv]] cells²);
+    ``slots`` empty for a whole pyramid's levels, else where each block is (:func:`_bspline_slots`).
 
     Returns (value, look-ups), look-ups 0 when the Gaussian is too eccentric for the rules."""
     m = 0.5 * (cuu + cvv)
@@ -500,13 +529,13 @@ def _one(values, tab, coef, scale, step, u0, v0, nu, nv, offset, uc, vc, cuu, cu
         row = 0.0
         for j in range(n2):
             b = xs2[j] * s
-            row += ws2[j] * _bspline(coef, off, nu[k], nv[k], u0[k], v0[k], step[k], pu - b * e1v, pv + b * e1u)
+            row += ws2[j] * _spline_at(coef, slots, off, nu[k], nv[k], u0[k], v0[k], step[k], pu - b * e1v, pv + b * e1u)
         acc += ws1[i] * row
     return acc, n1 * n2
 
 
 @nb.njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def _kernel(values, tab, coef, scale, step, u0, v0, nu, nv, offset, uc, vc, cuu, cuv, cvv, order, out, counts, n_threads):
+def _kernel(values, tab, coef, slots, scale, step, u0, v0, nu, nv, offset, uc, vc, cuu, cuv, cvv, order, out, counts, n_threads):
     """Gaussian ``order[i]`` for i = 0..N-1, in 256-Gaussian chunks; results go to its own index.
 
     Each chunk first copies its Gaussians out of the inputs (reading them through ``order`` inside
@@ -538,7 +567,7 @@ def _kernel(values, tab, coef, scale, step, u0, v0, nu, nv, offset, uc, vc, cuu,
         for i in range(lo, hi):
             r = g[i - lo]
             out[order[i]], counts[order[i]] = _one(
-                values, tab, coef, scale, step, u0, v0, nu, nv, offset, r[0], r[1], r[2], r[3], r[4], xs1, ws1, xs2, ws2, wu
+                values, tab, coef, slots, scale, step, u0, v0, nu, nv, offset, r[0], r[1], r[2], r[3], r[4], xs1, ws1, xs2, ws2, wu
             )
 
 
@@ -603,7 +632,7 @@ def integrate_pixels(
     p = pyr.levels(float(smin.max(initial=0.0)))
     out = np.empty(n)
     counts = np.empty(n, dtype=np.int64)
-    args = (pyr.field, PHI_TABLE, p.coef, p.scale, p.step, p.u0, p.v0, p.nu, p.nv, p.offset)
+    args = (pyr.field, PHI_TABLE, p.coef, NO_SLOTS, p.scale, p.step, p.u0, p.v0, p.nu, p.nv, p.offset)
     _kernel(*args, uc, vc, cuu, cuv, cvv, np.argsort(keys), out, counts, nb.get_num_threads())
     return out, counts
 

@@ -193,11 +193,3 @@ def test_needle_gaussians_are_handed_to_the_terraces() -> None:
     assert scalespace.integrate_pixels(ROUGH, *(np.atleast_1d(a) for a in pixel_gaussians(ROUGH, mean[None], cov[None])), False)[1][0] == 0
     ref = reference_integrate(ROUGH, mean[None], cov[None])[0]
     assert integrate(ROUGH, mean[None], cov[None])[0] == pytest.approx(ref, rel=0.01)
-
-
-def test_priors_above_the_size_limit_use_the_terraces(monkeypatch) -> None:
-    means, covs = random_gaussians(GRID, 10, seed=4)
-    monkeypatch.setattr(scalespace, "MAX_CELLS", H * W - 1)
-    with pytest.warns(UserWarning, match=r"96 x 128 grid is above scalespace.MAX_CELLS .* using the terraces"):
-        got = integrate(ROUGH, means, covs)
-    np.testing.assert_array_equal(got, integrate(ROUGH, means, covs, method="terraces"))

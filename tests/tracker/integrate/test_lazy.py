@@ -1,0 +1,159 @@
+"""The lazy, tiled pyramid against the whole in-memory pyramid: the same integrals, bit for bit.
+
+Oracle: :class:`tracker.integrate.scalespace.Pyramid` (itself checked against direct sums and the
+dense reference in test_scalespace.py), on small priors cut into tiny tiles (one or two 32-node
+blocks) with caches small enough to evict.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numba as nb
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from tests.tracker.integrate.test_terraces import GRID, ROUGH, random_gaussians, rough_field
+from tracker.integrate import integrate, lazy, scalespace
+from tracker.integrate.terraces import pixel_gaussians
+
+
+def pixel_batch(shape: tuple[int, int], n: int, seed: int, smallest: float = 0.3, largest: float = 30.0):
+    """``n`` Gaussians in pixel units over (and a little beyond) a grid of ``shape``: σ log-uniform in
+    [smallest, largest] cells, eccentricity up to e³, any angle."""
+    rng = np.random.default_rng(seed)
+    h, w = shape
+    uc, vc = rng.uniform(-5, w + 5, n), rng.uniform(-5, h + 5, n)
+    sig = np.exp(rng.uniform(np.log(smallest), np.log(largest), n))
+    ecc, th = np.exp(rng.uniform(0, 3, n)), rng.uniform(0, np.pi, n)
+    c, s = np.cos(th), np.sin(th)
+    l1, l2 = (sig * ecc) ** 2, sig**2
+    return uc, vc, c * c * l1 + s * s * l2, c * s * (l1 - l2), s * s * l1 + c * c * l2
+
+
+def whole_integrals(field: np.ndarray, px) -> tuple[np.ndarray, np.ndarray]:
+    """The whole pyramid's integrals of ``field`` (the path of scalespace.integrate_pixels), on one
+    thread (these grids are small: parallel launches would cost more than the work)."""
+    threads = nb.get_num_threads()
+    nb.set_num_threads(1)
+    try:
+        return _whole(field, px)
+    finally:
+        nb.set_num_threads(threads)
+
+
+def _whole(field: np.ndarray, px) -> tuple[np.ndarray, np.ndarray]:
+    pyr = scalespace.Pyramid(field)
+    n = px[0].shape[0]
+    smin, keys = np.empty(n), np.empty(n, np.int64)
+    scalespace._order_keys(*px, *field.shape, scalespace.ORDER_TILE, smin, keys)
+    p = pyr.levels(float(smin.max()))
+    out, counts = np.empty(n), np.empty(n, np.int64)
+    scalespace._kernel(pyr.field, scalespace.PHI_TABLE, p.coef, scalespace.NO_SLOTS, p.scale, p.step, p.u0, p.v0,
+                       p.nu, p.nv, p.offset, *px, np.argsort(keys), out, counts, 1)
+    return out, counts
+
+
+class Mosaic:
+    """A cell source that is not an array: one tile repeated, read window by window."""
+
+    def __init__(self, tile: np.ndarray, reps: tuple[int, int]) -> None:
+        self.tile = tile
+        self.shape = (tile.shape[0] * reps[0], tile.shape[1] * reps[1])
+
+    def __getitem__(self, key: tuple[slice, slice]) -> np.ndarray:
+        rows, cols = (np.arange(*k.indices(n)) for k, n in zip(key, self.shape, strict=True))
+        return self.tile[np.ix_(rows % self.tile.shape[0], cols % self.tile.shape[1])]
+
+
+@settings(max_examples=15, deadline=None)
+@given(
+    shape=st.tuples(st.integers(8, 90), st.integers(8, 120)),
+    seed=st.integers(0, 2**16),
+    blocks=st.sampled_from([1, 2]),
+    squared=st.booleans(),
+)
+def test_lazy_tiles_equal_the_whole_pyramid(shape, seed, blocks, squared) -> None:
+    field = rough_field(seed=seed % 7, shape=shape)
+    values = field * field if squared else field
+    px = pixel_batch(shape, 200, seed)
+    want, want_counts = whole_integrals(values, px)
+    pyr = lazy.LazyPyramid(field, squared, cache_bytes=4 << 20, field=values, blocks=blocks)
+    got, counts = pyr.integrate_pixels(*px)
+    np.testing.assert_array_equal(counts, want_counts)
+    ok = counts > 0
+    np.testing.assert_array_equal(got[ok], want[ok])
+
+
+def test_coefficients_equal_the_whole_pyramid_level_by_level() -> None:
+    field = rough_field(seed=3, shape=(70, 90))
+    p = scalespace.Pyramid(field).levels(20.0)
+    pyr = lazy.LazyPyramid(field, cache_bytes=64 << 20, blocks=1)
+    pyr._grow(20.0)
+    assert pyr.levels_built() == p.scale.size
+    for k in range(p.scale.size):
+        nv, nu = int(p.nv[k]), int(p.nu[k])
+        whole = scalespace._untile(p.coef[p.offset[k] : p.offset[k + 1]], (nv, nu))
+        got = pyr.window(k, 0, nv, 0, nu)
+        # The prefilter's start-up, damped by |z|^HALO = 1e-23, shows only where the coefficients are
+        # ~1e-23 of the level's largest (the zero prior's margin); everywhere else they are equal.
+        assert np.abs(got - whole).max() <= 1e-20 * np.abs(whole).max(), f"level {k}"
+        assert (got == whole).mean() >= 0.99, f"level {k}"
+
+
+def test_an_evicting_cache_rebuilds_the_same_numbers() -> None:
+    field = rough_field(seed=2, shape=(80, 110))
+    px = pixel_batch(field.shape, 300, seed=5, smallest=1.0, largest=6.0)
+    want, _ = whole_integrals(field, px)
+    roomy = lazy.LazyPyramid(field, cache_bytes=64 << 20, blocks=1)
+    tight = lazy.LazyPyramid(field, cache_bytes=800_000, blocks=1)
+    for pyr in (roomy, tight):
+        for _ in range(2):  # a second pass finds its tiles cached, or rebuilds the evicted ones
+            got, counts = pyr.integrate_pixels(*px)
+            np.testing.assert_array_equal(got[counts > 0], want[counts > 0])
+    assert tight.tiles_built > roomy.tiles_built  # it did evict and rebuild
+    assert tight.pool.nbytes <= 800_000
+
+
+def test_a_source_read_window_by_window_gives_the_same_integrals() -> None:
+    tile = rough_field(seed=4, shape=(23, 31))
+    mosaic = Mosaic(tile, (3, 4))
+    field = np.tile(tile, (3, 4))
+    px = pixel_batch(field.shape, 200, seed=7, smallest=1.0)  # no Gaussian finer than level 0: no field needed
+    got, counts = lazy.LazyPyramid(mosaic, blocks=2).integrate_pixels(*px)
+    want, want_counts = whole_integrals(field, px)
+    np.testing.assert_array_equal(counts, want_counts)
+    np.testing.assert_array_equal(got[counts > 0], want[counts > 0])
+
+
+def test_without_a_field_gaussians_finer_than_the_pyramid_are_left_to_the_caller() -> None:
+    field = rough_field(seed=1, shape=(30, 30))
+    px = pixel_batch(field.shape, 100, seed=3, smallest=0.1, largest=3.0)
+    _, counts = lazy.LazyPyramid(field).integrate_pixels(*px)
+    smin = np.sqrt(0.5 * (px[2] + px[4]) - np.sqrt(0.25 * (px[2] - px[4]) ** 2 + px[3] ** 2))
+    assert (counts[smin < scalespace.S0 * 0.999] == 0).all() and (counts[smin > scalespace.S0 * 1.001] > 0).all()
+
+
+def test_a_cache_too_small_for_one_gaussian_says_so() -> None:
+    field = rough_field(seed=1, shape=(300, 300))
+    px = pixel_batch(field.shape, 1, seed=1, smallest=60.0, largest=60.0)
+    with pytest.raises(MemoryError, match="a cache of 0 MiB cannot hold the tiles one batch needs"):
+        lazy.LazyPyramid(field, cache_bytes=1, blocks=1).integrate_pixels(*px)
+
+
+def test_priors_above_the_size_limit_get_the_lazy_pyramid(monkeypatch) -> None:
+    """integrate() on a grid above MAX_CELLS: the lazy pyramid, no warning, the whole pyramid's integrals."""
+    means, covs = random_gaussians(GRID, 200, seed=4)
+    want = integrate(ROUGH, means, covs)
+    want2 = integrate(ROUGH, means, covs, squared=True)
+    monkeypatch.setattr(scalespace, "MAX_CELLS", ROUGH.grid.height * ROUGH.grid.width - 1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        got = integrate(ROUGH, means, covs)
+        got2 = integrate(ROUGH, means, covs, squared=True)
+    assert lazy.lazy_pyramid(ROUGH, False).tiles_built > 0
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(got2, want2)
+    assert pixel_gaussians(ROUGH, means, covs)[0].shape == (200,)

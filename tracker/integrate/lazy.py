@@ -1,0 +1,380 @@
+"""The prior's Gaussian pyramid built lazily, tile by tile, only where Gaussians fall, in a bounded cache.
+
+:class:`~tracker.integrate.scalespace.Pyramid` builds every level of a whole prior in memory (~17
+float32 per cell: 40 GiB for 50,000² cells). :class:`LazyPyramid` keeps the same lattices (level k:
+nodes ``origin_k + h_k j``, :func:`~tracker.integrate.scalespace.lattice`) but computes their cubic
+B-spline coefficients per tile of :data:`SIDE` x :data:`SIDE` nodes when an integral first needs them,
+and keeps them in a fixed pool of :data:`~tracker.integrate.scalespace.TILE`-node blocks (the layout
+the kernel reads), evicting the least recently used tiles when the pool is full.
+
+Why a tile equals the whole pyramid's nodes: a node of level 0 is an exact sum over the cells within
+±(8 s_0 + 1) of it, and a node of level k > 0 a trapezoid sum over the level-(k-1) node values within
+±(10 d + 1) nodes (:func:`~tracker.integrate.scalespace._gauss_weights`); a tile reads exactly those
+cells or nodes, with the whole lattice's band starts and weights, so the sums are the same numbers in
+the same order. The only non-local step is the B-spline prefilter, a recursive filter with pole
+z = √3 - 2 run along whole lattice rows: a tile prefilters its nodes with :data:`HALO` nodes more on
+each side (or up to the lattice's mirrored end), and the start-up there reaches the tile damped by
+|z|^HALO = 1e-23 of the level's largest value, far below float32 rounding. So coefficients, and the
+integrals from them, are the whole pyramid's (tests/tracker/integrate/test_lazy.py checks that they are
+equal to 1e-12 of the field's maximum, and bit-identical in nearly every case).
+
+A tile of level k needs level k-1 on its extent plus ~55 nodes, so the tiles under a Gaussian are built
+from the levels below, each once while it stays cached. The cost is per tile touched, not per cell of
+the prior: streams that cover a small part of a large prior pay for that part only. Units as in
+:mod:`tracker.integrate.scalespace` (pixels; values in the prior's units).
+"""
+
+from __future__ import annotations
+
+import threading
+import weakref
+from collections import OrderedDict
+from typing import Protocol
+
+import numba as nb
+import numpy as np
+
+from pipeline.prior import TerrainPrior
+from tracker.integrate import scalespace as ss
+
+__all__ = ["BLOCKS", "CACHE_BYTES", "HALO", "SIDE", "CellSource", "LazyPyramid", "lazy_pyramid"]
+
+BLOCKS = 8
+"""Kernel blocks (:data:`~tracker.integrate.scalespace.TILE` nodes) per tile side."""
+SIDE = BLOCKS * ss.TILE
+"""Nodes per tile side (256: 128 cells at level 0, 1.3 MB of its float64 temporaries)."""
+HALO = 40
+"""Extra nodes each side a tile is prefiltered over: the recursive filter's start-up is damped by
+|√3 - 2|^40 = 1.4e-23 where the tile begins."""
+CACHE_BYTES = 1 << 30
+"""Default size of the block pool, bytes (3,400 tiles of 256² nodes)."""
+GH_SPAN = 5.6
+"""Largest |node| of the rules (Gauss-Hermite up to 12 points: 5.50; trapezoid: TRAP_SPAN = 5), in
+leftover σ: bounds how far from its centre a Gaussian's look-ups fall."""
+_T = ss.TILE
+_BLOCK = (_T + 3) ** 2
+
+
+class CellSource(Protocol):
+    """What a lazy pyramid reads the prior from: an (H, W) ``shape`` and 2-D slicing that returns the
+    cells' values (per m², any float dtype) as an array; a numpy array or memmap is one."""
+
+    shape: tuple[int, ...]
+
+    def __getitem__(self, key: tuple[slice, slice]) -> np.ndarray: ...
+
+
+class LazyPyramid:
+    """f_{s_k} = r ⊛ G_{s_k} on the lattices of :class:`~tracker.integrate.scalespace.Pyramid`,
+    computed per tile on demand and cached in ``cache_bytes`` of float32 blocks (thread-safe).
+
+    ``source`` holds r per cell (:class:`CellSource`); ``squared`` integrates r² instead; a tile is ``blocks`` x ``blocks``
+    kernel blocks (:data:`SIDE` nodes a side by default). ``field``,
+    the (H, W) float64 values (r or r²) in memory, serves Gaussians narrower than the finest level
+    (smoothed on the fly from the cells, as the whole pyramid does); without it those are left to
+    the caller (look-ups 0).
+    """
+
+    def __init__(self, source: CellSource, squared: bool = False, cache_bytes: int = CACHE_BYTES,
+                 field: np.ndarray | None = None, blocks: int = BLOCKS) -> None:
+        if len(source.shape) != 2:
+            raise ValueError(f"LazyPyramid: the source must be 2-D, got shape {source.shape}")
+        self.source = source
+        self.shape = (int(source.shape[0]), int(source.shape[1]))
+        self.squared = squared
+        self.field = field
+        self.blocks = int(blocks)
+        self.side = self.blocks * _T
+        n_slots = max(int(cache_bytes) // (4 * _BLOCK), 4 * self.blocks**2)
+        self.pool = np.zeros((n_slots, _BLOCK), np.float32)
+        self._free = list(range(n_slots - 1, -1, -1))
+        self._tiles: OrderedDict[tuple[int, int, int], np.ndarray] = OrderedDict()
+        self._pinned: set[tuple[int, int, int]] = set()
+        self._geometry: list[tuple[float, float, float, int, int, int, int]] = []  # s, h, origin, nu, nv, nbu, table offset
+        self.slots = np.full(0, -1, np.int32)
+        self.tiles_built = 0
+        self._lock = threading.RLock()
+
+    # --- levels and tiles -------------------------------------------------------------------
+
+    def _grow(self, top_scale: float) -> None:
+        """Add levels (empty tables) up to the first with s_k >= ``top_scale``, as the whole pyramid does."""
+        tables = [self.slots]
+        size = self.slots.size
+        while not self._geometry or self._geometry[-1][0] < top_scale:
+            s, h, origin, nu, nv = ss.lattice(len(self._geometry), self.shape)
+            nbu, nbv = -(-nu // ss.TILE), -(-nv // ss.TILE)
+            self._geometry.append((s, h, origin, nu, nv, nbu, size))
+            tables.append(np.full(nbu * nbv, -1, np.int32))
+            size += nbu * nbv
+        if len(tables) > 1:
+            self.slots = np.concatenate(tables)
+
+    def _cells(self, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+        """The float64 values (r or r²) of cells [r0, r1) x [c0, c1)."""
+        values = np.ascontiguousarray(self.source[r0:r1, c0:c1], dtype=np.float64)
+        return values * values if self.squared else values
+
+    def _needs(self, k: int, lo: int, hi: int, axis: int) -> tuple[int, int]:
+        """The level-(k-1) coefficient nodes [c0, c1) on ``axis`` (0 rows, 1 columns) that a tile of level
+        k > 0 spanning nodes [lo, hi) reads (its prefilter halo, the smoothing band, one node for node values)."""
+        s, h, origin, nu, nv = self._geometry[k][:5]
+        ps, ph, po, pnu, pnv = self._geometry[k - 1][:5]
+        n, pn = (nv, pnv) if axis == 0 else (nu, pnu)
+        ends = origin + h * np.array([max(lo - HALO, 0), min(hi + HALO, n) - 1])
+        start, weights = ss._gauss_weights(ends, po, pn, np.sqrt(s * s - ps * ps), ph)
+        return max(int(start[0]) - 1, 0), min(int(start[1]) + weights.shape[1] + 1, pn)
+
+    def _prepare(self, k: int, tv: int, tu: int) -> None:
+        """Build tile (tv, tu) of level k after the tiles below it that are missing, lowest level first:
+        each is then built once, not once per tile above it that reads it."""
+        plan = [(k, tv, tv, tu, tu)]
+        while plan[-1][0] > 0:
+            m, v0, v1, u0, u1 = plan[-1]
+            j0, j1 = self._needs(m, v0 * self.side, (v1 + 1) * self.side, 0)
+            i0, i1 = self._needs(m, u0 * self.side, (u1 + 1) * self.side, 1)
+            below = (m - 1, j0 // self.side, (j1 - 1) // self.side, i0 // self.side, (i1 - 1) // self.side)
+            if all((below[0], a, b) in self._tiles for a in range(below[1], below[2] + 1) for b in range(below[3], below[4] + 1)):
+                break
+            plan.append(below)
+        # Two consecutive levels' rectangles must fit beside the pinned tiles, or building one level
+        # would evict the tiles below it that the next build reads (and rebuild them, again and again).
+        sizes = [(v1 - v0 + 1) * (u1 - u0 + 1) for _, v0, v1, u0, u1 in plan]
+        need = max(a + b for a, b in zip(sizes, [*sizes[1:], 0], strict=True)) + len(self._pinned)
+        if need * self.blocks**2 > self.pool.shape[0]:
+            raise MemoryError(f"LazyPyramid: a cache of {self.pool.nbytes / 2**20:.0f} MiB cannot hold the tiles one batch needs "
+                              f"({need} tiles of {self.blocks**2} blocks at once)")
+        threads = nb.get_num_threads()
+        # A tile's kernels take ~50 µs on one thread; a parallel launch can cost more than that on busy cores.
+        nb.set_num_threads(1)
+        try:
+            for m, v0, v1, u0, u1 in reversed(plan):
+                for a in range(v0, v1 + 1):
+                    for b in range(u0, u1 + 1):
+                        if (m, a, b) not in self._tiles:
+                            self._build(m, a, b)
+        finally:
+            nb.set_num_threads(threads)
+
+    def _build(self, k: int, tv: int, tu: int) -> None:
+        """Coefficients of tile (tv, tu) of level k, into free blocks of the pool."""
+        s, h, origin, nu, nv, nbu, toff = self._geometry[k]
+        av, au = tv * self.side, tu * self.side
+        ev0, ev1 = max(av - HALO, 0), min(av + self.side + HALO, nv)
+        eu0, eu1 = max(au - HALO, 0), min(au + self.side + HALO, nu)
+        u = origin + h * np.arange(eu0, eu1)
+        v = origin + h * np.arange(ev0, ev1)
+        if k == 0:
+            su, wu = ss._box_weights(u, self.shape[1], s)
+            sv, wv = ss._box_weights(v, self.shape[0], s)
+            c0, r0 = int(su.min()), int(sv.min())
+            cells = self._cells(r0, int(sv.max()) + wv.shape[1], c0, int(su.max()) + wu.shape[1])
+            values = ss._separable(cells, su - c0, wu, sv - r0, wv)
+        else:
+            ps, ph, po, pnu, pnv = self._geometry[k - 1][:5]
+            d = np.sqrt(s * s - ps * ps)
+            su, wu = ss._gauss_weights(u, po, pnu, d, ph)
+            sv, wv = ss._gauss_weights(v, po, pnv, d, ph)
+            i0, i1 = int(su.min()), int(su.max()) + wu.shape[1]
+            j0, j1 = int(sv.min()), int(sv.max()) + wv.shape[1]
+            # node values need one coefficient beyond each end (or the lattice's mirrored end)
+            (cj0, cj1), (ci0, ci1) = self._needs(k, av, av + self.side, 0), self._needs(k, au, au + self.side, 1)
+            nodes = ss._node_values(self.window(k - 1, cj0, cj1, ci0, ci1))[j0 - cj0 : j1 - cj0, i0 - ci0 : i1 - ci0]
+            values = ss._separable(np.ascontiguousarray(nodes), su - i0, wu, sv - j0, wv)
+        coef = ss._prefilter(values)
+        # The tile's blocks with their aprons (node rows av-1 .. av+self.side+1), zeros beyond the lattice (as _tile).
+        padded = np.zeros((self.side + 3, self.side + 3), np.float32)
+        r_lo, r_hi = max(av - 1, 0), min(av + self.side + 2, nv)
+        c_lo, c_hi = max(au - 1, 0), min(au + self.side + 2, nu)
+        padded[r_lo - av + 1 : r_hi - av + 1, c_lo - au + 1 : c_hi - au + 1] = coef[r_lo - ev0 : r_hi - ev0, c_lo - eu0 : c_hi - eu0]
+        blocks = np.lib.stride_tricks.sliding_window_view(padded, (ss.TILE + 3, ss.TILE + 3))[:: ss.TILE, :: ss.TILE]
+        nbv = -(-nv // ss.TILE)
+        gbv = tv * self.blocks + np.arange(self.blocks)
+        gbu = tu * self.blocks + np.arange(self.blocks)
+        keep_v, keep_u = np.flatnonzero(gbv < nbv), np.flatnonzero(gbu < nbu)
+        n = keep_v.size * keep_u.size
+        self._make_room(n)
+        slots = np.array([self._free.pop() for _ in range(n)], np.int32)
+        self.pool[slots] = blocks[np.ix_(keep_v, keep_u)].reshape(n, _BLOCK)
+        table = toff + (gbv[keep_v][:, None] * nbu + gbu[keep_u][None, :]).ravel()
+        self.slots[table] = slots
+        self._tiles[(k, tv, tu)] = table
+        self.tiles_built += 1
+
+    def _make_room(self, n: int) -> None:
+        """Free ``n`` slots, evicting the least recently used tiles that are not pinned."""
+        if len(self._free) >= n:
+            return
+        for key in list(self._tiles):
+            if key in self._pinned:
+                continue
+            table = self._tiles.pop(key)
+            self._free.extend(self.slots[table].tolist())
+            self.slots[table] = -1
+            if len(self._free) >= n:
+                return
+        raise MemoryError(f"LazyPyramid: a cache of {self.pool.nbytes / 2**20:.0f} MiB cannot hold the tiles one batch needs")
+
+    def tile(self, k: int, tv: int, tu: int) -> np.ndarray:
+        """Positions in :attr:`slots` of tile (tv, tu) of level k's blocks, built if missing; marks it recently used."""
+        key = (k, tv, tu)
+        with self._lock:
+            table = self._tiles.get(key)
+            if table is None:
+                self._prepare(k, tv, tu)
+                table = self._tiles[key]
+            self._tiles.move_to_end(key)
+            return table
+
+    def window(self, k: int, j0: int, j1: int, i0: int, i1: int) -> np.ndarray:
+        """Level k's coefficients at nodes [j0, j1) x [i0, i1) of its lattice (float32), from its tiles."""
+        with self._lock:
+            out = np.empty((j1 - j0, i1 - i0), np.float32)
+            for tv in range(j0 // self.side, (j1 - 1) // self.side + 1):
+                for tu in range(i0 // self.side, (i1 - 1) // self.side + 1):
+                    self.tile(k, tv, tu)
+                    _copy_blocks(self.pool, self.slots, self._geometry[k][6], self._geometry[k][5], self.blocks, tv, tu, j0, j1, i0, i1, out)
+            return out
+
+    def levels_built(self) -> int:
+        """How many levels have lattices so far."""
+        return len(self._geometry)
+
+    def packed(self) -> ss.Packed:
+        """The levels' geometry as the kernel reads it, with ``coef`` the pool and ``offset`` into :attr:`slots`."""
+        g = self._geometry
+        col = [np.array([x[i] for x in g]) for i in range(5)]
+        return ss.Packed(col[0], col[1], col[2], col[2].copy(), col[3].astype(np.int64), col[4].astype(np.int64),
+                         np.array([x[6] for x in g], np.int64), self.pool.reshape(-1))
+
+    # --- integrals --------------------------------------------------------------------------
+
+    def integrate_pixels(self, uc: np.ndarray, vc: np.ndarray, cuu: np.ndarray, cuv: np.ndarray, cvv: np.ndarray
+                         ) -> tuple[np.ndarray, np.ndarray]:
+        """As :func:`tracker.integrate.scalespace.integrate_pixels`: (values, look-ups per integral),
+        look-ups 0 for Gaussians left to the caller (too eccentric, or finer than the finest level
+        without :attr:`field`)."""
+        n = uc.shape[0]
+        out = np.zeros(n)
+        counts = np.zeros(n, np.int64)
+        if n == 0:
+            return out, counts
+        smin = np.empty(n)
+        keys = np.empty(n, np.int64)
+        h, w = self.shape
+        ss._order_keys(uc, vc, cuu, cuv, cvv, h, w, ss.ORDER_TILE, smin, keys)
+        with self._lock:
+            self._grow(float(smin.max(initial=0.0)))
+            order = np.argsort(keys)
+            fine = smin[order] < ss.S0
+            if self.field is None and fine.any():
+                order = order[~fine]  # left to the caller: counts stay 0
+            field = self.field if self.field is not None else np.zeros((1, 1))
+            todo = order
+            for widen in (0, 1, 2):
+                if not todo.size:
+                    break
+                self._run(field, todo, uc, vc, cuu, cuv, cvv, widen, out, counts)
+                todo = todo[np.isnan(out[todo])]
+            if todo.size:
+                raise RuntimeError(f"LazyPyramid: {todo.size} integrals still miss tiles after widening the plan")
+        return out, counts
+
+    def _tiles_of(self, idx: np.ndarray, uc, vc, cuu, cuv, cvv, widen: int) -> np.ndarray:
+        """Keys k << 40 | tv << 20 | tu of the tiles the Gaussians ``idx`` read (their level ± ``widen``)."""
+        a, b, c = cuu[idx], cuv[idx], cvv[idx]
+        m, dd = 0.5 * (a + c), 0.5 * (a - c)
+        rad = np.sqrt(dd * dd + b * b)
+        lam1, lam2 = m + rad, np.maximum(m - rad, 0.0)
+        fine = lam2 < ss.S0 * ss.S0
+        top = len(self._geometry) - 1
+        with np.errstate(divide="ignore"):
+            k0 = np.floor(np.log(np.sqrt(lam2) / ss.S0) / np.log(ss.RATIO) + 1e-9)
+        k0 = np.clip(np.where(fine, 0, k0), 0, top).astype(np.int64)
+        scale = np.array([g[0] for g in self._geometry])
+        keys = []
+        for dk in range(-widen, widen + 1):
+            k = np.clip(k0 + dk, 0, top)
+            s = scale[k]
+            reach = GH_SPAN * (1 + widen) * (np.sqrt(np.maximum(lam1 - s * s, 0.0)) + np.sqrt(np.maximum(lam2 - s * s, 0.0)))
+            for lv in np.unique(k[~fine]):
+                sel = (k == lv) & ~fine
+                _, hh, origin, nu, nv = self._geometry[lv][:5]
+                r = reach[sel] + 3 * hh
+                lo_u = np.clip(np.floor((uc[idx][sel] - r - origin) / hh) - 2, 0, nu - 1).astype(np.int64) // self.side
+                hi_u = np.clip(np.floor((uc[idx][sel] + r - origin) / hh) + 3, 0, nu - 1).astype(np.int64) // self.side
+                lo_v = np.clip(np.floor((vc[idx][sel] - r - origin) / hh) - 2, 0, nv - 1).astype(np.int64) // self.side
+                hi_v = np.clip(np.floor((vc[idx][sel] + r - origin) / hh) + 3, 0, nv - 1).astype(np.int64) // self.side
+                keys.append(_tile_keys(int(lv), lo_u, hi_u, lo_v, hi_v))
+        return np.unique(np.concatenate(keys)) if keys else np.zeros(0, np.int64)
+
+    def _run(self, field, todo, uc, vc, cuu, cuv, cvv, widen, out, counts) -> None:
+        """Integrals ``todo`` (in kernel order), in chunks whose tiles fit half the pool at once."""
+        per_tile = self.blocks * self.blocks
+        room = self.pool.shape[0] // (2 * per_tile)
+        stack = [todo]
+        while stack:
+            chunk = stack.pop()
+            need = self._tiles_of(chunk, uc, vc, cuu, cuv, cvv, widen)
+            if need.size > room and chunk.size > 1:
+                half = chunk.size // 2
+                stack += [chunk[half:], chunk[:half]]
+                continue
+            pins = [(int(t >> 40), int((t >> 20) & 0xFFFFF), int(t & 0xFFFFF)) for t in need]
+            try:
+                for key in pins:
+                    self.tile(*key)
+                    self._pinned.add(key)
+                p = self.packed()
+                out[chunk] = np.nan  # stays NaN only if the kernel found a block missing
+                ss._kernel(field, ss.PHI_TABLE, p.coef, self.slots, p.scale, p.step, p.u0, p.v0, p.nu, p.nv, p.offset,
+                           uc, vc, cuu, cuv, cvv, chunk, out, counts, nb.get_num_threads())
+            finally:
+                self._pinned.clear()
+
+
+def _tile_keys(k: int, lo_u, hi_u, lo_v, hi_v) -> np.ndarray:
+    """All tile keys in the per-Gaussian ranges [lo, hi] on both axes."""
+    nu_t, nv_t = hi_u - lo_u + 1, hi_v - lo_v + 1
+    total = nu_t * nv_t
+    owner = np.repeat(np.arange(total.size), total)
+    local = np.arange(owner.size) - np.repeat(np.cumsum(total) - total, total)
+    tv = lo_v[owner] + local // nu_t[owner]
+    tu = lo_u[owner] + local % nu_t[owner]
+    return (np.int64(k) << 40) | (tv << 20) | tu
+
+
+@nb.njit(cache=True)
+def _copy_blocks(pool, slots, toff, nbu, blocks, tv, tu, j0, j1, i0, i1, out):
+    """Copy the interiors of tile (tv, tu)'s ``blocks`` x ``blocks`` blocks that fall in nodes [j0, j1) x [i0, i1) into ``out``."""
+    t = _T
+    width = t + 3
+    for bv in range(tv * blocks, (tv + 1) * blocks):
+        for bu in range(tu * blocks, (tu + 1) * blocks):
+            if bu >= nbu:
+                continue
+            rv0, rv1 = max(bv * t, j0), min(bv * t + t, j1)
+            ru0, ru1 = max(bu * t, i0), min(bu * t + t, i1)
+            if rv0 >= rv1 or ru0 >= ru1:
+                continue
+            slot = slots[toff + bv * nbu + bu]
+            for r in range(rv0, rv1):
+                base = (r - bv * t + 1) * width + 1 - bu * t
+                for c in range(ru0, ru1):
+                    out[r - j0, c - i0] = pool[slot, base + c]
+
+
+_LAZY: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+_LAZY_LOCK = threading.Lock()
+
+
+def lazy_pyramid(prior: TerrainPrior, squared: bool) -> LazyPyramid:
+    """The prior's lazy pyramid of r (or r²), made once per prior object and kept while it lives; its
+    cells are read from ``prior.density`` (which may be a memmap), and Gaussians finer than the finest
+    level use it in memory as the whole pyramid does."""
+    with _LAZY_LOCK:
+        per_prior = _LAZY.setdefault(prior, {})
+        if squared not in per_prior:
+            field = np.asarray(prior.density, dtype=np.float64)
+            per_prior[squared] = LazyPyramid(prior.density, squared, field=field * field if squared else field)
+        return per_prior[squared]
