@@ -166,7 +166,7 @@ def cmd_heldout(args: argparse.Namespace) -> None:
         region=str(args.region), targets_file=str(args.targets_file), targets_layer=args.layer, block_m=args.block_m,
         n_folds=args.folds, n_datasets=args.datasets, n_targets=args.targets, n_reports=args.reports,
         taus=parse_taus(args.tau), alphas=alphas, hybrid=not args.no_hybrid, handset=not args.no_handset,
-        other_region=not args.no_other, exact_s=not args.no_exact_s, base_seed=args.seed,
+        other_region=not args.no_other, exact_s=not args.no_exact_s, batch=args.batch, base_seed=args.seed,
         sensor=AirborneSensor(azimuth_std_rad=args.azimuth_std_mrad / 1000.0, range_std_m=args.range_std_m),
         integrator=args.integrator,
     )
@@ -197,6 +197,7 @@ def add_heldout_parser(sub, quiet: argparse.ArgumentParser) -> None:
     p.add_argument("--no-handset", action="store_true", help="leave out the config's hand-set tables")
     p.add_argument("--no-other", action="store_true", help="leave out the model learned on another (the furthest) fold")
     p.add_argument("--no-exact-s", action="store_true", help="leave out the exact eq. 16 S under Poisson(--targets)")
+    p.add_argument("--batch", action="store_true", help="also run batch TT (MAP partition from greedy's) with the learned prior")
     p.add_argument("--seed", type=int, default=0, help="seed of the first data set")
     p.add_argument("--azimuth-std-mrad", type=float, default=2.0, help="sensor azimuth standard deviation, mrad")
     p.add_argument("--range-std-m", type=float, default=12.0, help="sensor slant-range standard deviation, m")

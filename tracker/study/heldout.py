@@ -52,6 +52,8 @@ from tracker.study.simulate import AirborneSensor
 ALPHAS = (0.0, 0.5, 1.0, 1.5, 2.0)
 LEARNED = ("UU", "UT", "TT")
 """Variants run with the learned prior; every other prior runs TT only."""
+BATCH = ("TT batch",)
+"""Batch labels (with the learned prior): their Score shares the learned-prior rows' reference."""
 METRICS = {"gospa_m": 1.0, "purity": -1.0, "ospa_m": 1.0, "nd_abs_error": 1.0, "rms_error_m": 1.0, "score": 1.0}
 """Compared metrics and their sign: +1 lower is better, -1 higher is better (purity)."""
 HEADLINE = ("gospa_m", "purity")
@@ -82,6 +84,9 @@ class HeldoutConfig:
     other_region: bool = True
     exact_s: bool = True
     """Also run every prior with the exact eq. 16 S under N_T ~ Poisson(n_targets) (no τ)."""
+    batch: bool = False
+    """Also run batch TT with the learned prior (label "TT batch": the MAP partition searched from greedy's,
+    :class:`tracker.association.batch.BatchAssociator`)."""
     base_seed: int = 0
     gospa_c_m: float = 500.0
     sensor: AirborneSensor = field(default_factory=AirborneSensor)
@@ -234,16 +239,19 @@ def datasets(prepared: Prepared, config: HeldoutConfig) -> list[tuple[int, Block
 
 
 def run_one(task: int, tasks: Sequence[tuple[int, Block]], priors: dict[str, dict[str, str]], config: HeldoutConfig) -> list[dict]:
-    """All priors on data set ``task``: records of :func:`run_dataset` with ``label`` (variant, and the
-    prior unless learned), ``prior``, ``block`` and ``fold`` added."""
+    """All priors on data set ``task``: records of :func:`run_dataset` with ``label`` (the algorithm, and
+    the prior unless learned: "TT", "TT batch", "TT-hybrid"), ``prior``, ``block`` and ``fold`` added."""
     seed, block = tasks[task]
     exp = config.experiment()
     rows = []
     for prior, path in priors[block.name].items():
-        variants = LEARNED if prior == "learned" else ("TT",)
-        for rec in run_dataset(path, seed, dataclasses.replace(exp, variants=variants)):
-            label = rec["variant"] if prior == "learned" else f"TT-{prior}"
-            rows.append(rec | {"label": label, "prior": prior, "block": block.name, "fold": block.fold})
+        runs = [dataclasses.replace(exp, variants=LEARNED if prior == "learned" else ("TT",))]
+        if prior == "learned" and config.batch:
+            runs.append(dataclasses.replace(exp, variants=("TT",), methods=("batch",)))
+        for run in runs:
+            for rec in run_dataset(path, seed, run):
+                label = rec["algorithm"] if prior == "learned" else f"TT-{prior}"
+                rows.append(rec | {"label": label, "prior": prior, "block": block.name, "fold": block.fold})
     return rows
 
 
@@ -294,7 +302,7 @@ def summarise_heldout(results: pd.DataFrame, config: HeldoutConfig, prepared: Pr
     for lab in labels:
         per[lab] = {}
         for m, sign in METRICS.items():
-            if m == "score" and lab not in LEARNED:
+            if m == "score" and lab not in LEARNED + BATCH:
                 continue
             s = _matrix(results, lab, m)
             at, b = _at_best(results, lab, m)
@@ -304,8 +312,9 @@ def summarise_heldout(results: pd.DataFrame, config: HeldoutConfig, prepared: Pr
                 per[lab][m]["mean_exact_s"] = float(sign * _exact(results, lab, m).mean())
     table: dict = {}
     for m in METRICS:
-        for a, b in [("TT", "UU"), ("TT", "UT"), ("UT", "UU")] + [(lab, "UU") for lab in labels if lab not in LEARNED]:
-            if m == "score" and a not in LEARNED:
+        extra = [("TT batch", "TT")] if "TT batch" in labels else []
+        for a, b in [("TT", "UU"), ("TT", "UT"), ("UT", "UU")] + extra + [(lab, "UU") for lab in labels if lab not in LEARNED]:
+            if m == "score" and a not in LEARNED + BATCH:
                 continue
             key = f"{a} vs {b}"
             entry = {form: _p(_at_best(results, a, m)[0], _at_best(results, b, m)[0], form) for form in ("normal", "t")}
@@ -333,7 +342,7 @@ def summarise_heldout(results: pd.DataFrame, config: HeldoutConfig, prepared: Pr
         "alphas_where_tt_beats_uu": wins,
         "largest_misspecification_tt_beats_uu": _largest_misspecification(wins),
         "score_is_proxy": "Score (eq. 18) is against the perfect association under the learned prior (the real "
-                          "targets' prior is unknown); compared only among UU, UT, TT",
+                          "targets' prior is unknown); compared only among UU, UT, TT and TT batch",
     }
     if prepared is not None:
         out["folds"] = {str(k): v for k, v in prepared.models.items()}

@@ -126,6 +126,23 @@ def test_every_prior_sees_the_same_data_sets(setting):
     assert set(results["s_model"]) == {"exp", "poisson"}
 
 
+def test_batch_tt_runs_on_the_learned_prior_and_never_lowers_the_posterior(setting):
+    """batch TT (``batch=True``) starts from greedy TT's partition, so its ln p(Λ|Z) is never lower; it is
+    compared with greedy TT in the summary."""
+    cfg, prepared, results, _ = setting
+    cfg = dataclasses.replace(cfg, batch=True, n_datasets=2)
+    with_batch = run_heldout(cfg, prepared, workers=1, progress=False)
+    assert set(with_batch["label"]) == set(results["label"]) | {"TT batch"}
+    key = ["seed", "tau", "s_model"]
+    tt = with_batch[with_batch["label"] == "TT"].set_index(key)["log_posterior"]
+    batch = with_batch[with_batch["label"] == "TT batch"].set_index(key)["log_posterior"]
+    assert len(batch) == len(tt) > 0
+    assert (batch - tt.reindex(batch.index) >= -1e-9).all()
+    summary = summarise_heldout(with_batch, cfg)
+    assert "TT batch vs TT" in summary["table"]["gospa_m"] and "TT batch" in summary["labels"]
+    assert "score" in summary["labels"]["TT batch"]
+
+
 @pytest.mark.slow
 def test_alpha_priors_are_powers_of_the_learned_density(setting):
     _, prepared, _, _ = setting
