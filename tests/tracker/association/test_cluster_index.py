@@ -7,6 +7,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from tests.tracker.association.helpers import random_covs
 from tracker.association.batch import BatchAssociator
 from tracker.association.batch_kernels import earlier_dependency
 from tracker.association.cluster_index import ClusterIndex, lambda_max
@@ -14,16 +15,6 @@ from tracker.gating import gate
 
 GAMMA = 41.4
 
-
-def random_covs(rng: np.random.Generator, n: int, lo: float = 5.0, hi: float = 60.0) -> np.ndarray:
-    ang = rng.uniform(0, np.pi, n)
-    sd = rng.uniform(lo, hi, (n, 2))
-    c, s = np.cos(ang), np.sin(ang)
-    out = np.empty((n, 2, 2))
-    out[:, 0, 0] = c * c * sd[:, 0] ** 2 + s * s * sd[:, 1] ** 2
-    out[:, 1, 1] = s * s * sd[:, 0] ** 2 + c * c * sd[:, 1] ** 2
-    out[:, 0, 1] = out[:, 1, 0] = c * s * (sd[:, 0] ** 2 - sd[:, 1] ** 2)
-    return out
 
 
 def d2(a: np.ndarray, A: np.ndarray, z: np.ndarray, V: np.ndarray) -> np.ndarray:

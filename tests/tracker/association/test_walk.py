@@ -6,19 +6,9 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from tests.tracker.association.helpers import random_covs
 from tracker.association.greedy import _HypothesisGrid
 from tracker.association.walk import grid_gate, grid_place
-
-
-def _covs(rng, n, lo, hi):
-    ang = rng.uniform(0, np.pi, n)
-    sd = rng.uniform(lo, hi, (n, 2))
-    c, s = np.cos(ang), np.sin(ang)
-    out = np.empty((n, 2, 2))
-    out[:, 0, 0] = c * c * sd[:, 0] ** 2 + s * s * sd[:, 1] ** 2
-    out[:, 1, 1] = s * s * sd[:, 0] ** 2 + c * c * sd[:, 1] ** 2
-    out[:, 0, 1] = out[:, 1, 0] = c * s * (sd[:, 0] ** 2 - sd[:, 1] ** 2)
-    return out
 
 
 def _brute(Hm, Hc, z, V, gamma):
@@ -42,9 +32,9 @@ def test_grid_gate_equals_brute_force(seed, n, m, spread, gamma, outside):
     rng = np.random.default_rng(seed)
     lo, hi = (-2000.0, 12000.0) if outside else (0.0, 10000.0)
     Hm = rng.uniform(lo, hi, (n, 2))
-    Hc = _covs(rng, n, 2.0, 60.0 * spread)
+    Hc = random_covs(rng, n, 2.0, 60.0 * spread)
     z = rng.uniform(lo, hi, (m, 2))
-    V = _covs(rng, m, 2.0, 60.0)
+    V = random_covs(rng, m, 2.0, 60.0)
     grid = _HypothesisGrid((0.0, 0.0, 10000.0, 10000.0), gamma)
     grid.reserve(V, max(n, 1))
     grid_place(np.arange(n), Hm, Hc, grid.arrays)
@@ -62,7 +52,7 @@ def test_grid_lists_hold_each_hypothesis_once():
     rng = np.random.default_rng(3)
     n = 500
     Hm = rng.uniform(0, 5000, (n, 2))
-    Hc = _covs(rng, n, 5.0, 50.0)
+    Hc = random_covs(rng, n, 5.0, 50.0)
     grid = _HypothesisGrid((0.0, 0.0, 5000.0, 5000.0), 41.4)
     grid.reserve(Hc, n)
     for _ in range(5):
