@@ -67,3 +67,17 @@ def region_doc(**region) -> dict:
         layer["path"] = str((REGION_TOML.parent / layer["path"]).resolve())
     doc["region"].update(region)
     return doc
+
+
+def handset_targets(region_toml: Path, n: int, seed: int = 0) -> np.ndarray:
+    """(n, 2) target locations in metres drawn from the region's hand-set prior (its features built quietly)."""
+    import warnings
+
+    from pipeline.build.region import build_features, build_prior
+    from pipeline.config.learn import load_learn_config
+
+    region, _ = load_learn_config(region_toml)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        stack = build_features(region, progress=False)
+    return build_prior(stack, region.model).sample(n, np.random.default_rng(seed))

@@ -17,7 +17,7 @@ from pipeline.config.learn import load_learn_config
 from pipeline.config.region import ConfigError
 from pipeline.prior.likelihood import LikelihoodModel
 from pipeline.prior.terrain import TerrainPrior
-from tests.pipeline.gis_helpers import REGION_TOML, write_config, write_vector
+from tests.pipeline.gis_helpers import REGION_TOML, handset_targets, write_config, write_vector
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -37,11 +37,7 @@ def cut_config(tmp: Path, learn: dict | None) -> Path:
 def targets(tmp_path_factory):
     """Targets drawn from the hand-set prior of the cut, as CSV and as GeoJSON polygons (centroids)."""
     tmp = tmp_path_factory.mktemp("learn_cli")
-    region, _ = load_learn_config(cut_config(tmp, None))
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        stack = build_features(region, progress=False)
-    pts = build_prior(stack, region.model).sample(1200, np.random.default_rng(0))
+    pts = handset_targets(cut_config(tmp, None), 1200)
     csv = tmp / "targets.csv"
     np.savetxt(csv, pts, delimiter=",", header="x,y", comments="")
     squares = [shapely.box(x - 2, y - 2, x + 2, y + 2) for x, y in pts[:300]]

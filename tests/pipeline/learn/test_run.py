@@ -5,20 +5,18 @@ from __future__ import annotations
 
 import json
 import tomllib
-import warnings
 
 import numpy as np
 import pytest
 from scipy import integrate
 from sklearn.neighbors import KernelDensity
 
-from pipeline.build.region import build_features, build_prior
 from pipeline.cli import main
 from pipeline.config.learn import load_learn_config
 from pipeline.config.region import ConfigError
 from pipeline.learn.evaluate import CVResult, kde_log_mass
 from pipeline.prior.likelihood import BinnedLikelihood, LikelihoodModel
-from tests.pipeline.gis_helpers import write_config
+from tests.pipeline.gis_helpers import handset_targets, write_config
 from tests.pipeline.test_learn_cli import cut_config
 
 
@@ -26,11 +24,7 @@ from tests.pipeline.test_learn_cli import cut_config
 def weighted_targets(tmp_path_factory):
     """400 targets of the cut's hand-set prior in a CSV with a weight column ``w`` (1..3)."""
     tmp = tmp_path_factory.mktemp("learn_run")
-    region, _ = load_learn_config(cut_config(tmp, None))
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        stack = build_features(region, progress=False)
-    pts = build_prior(stack, region.model).sample(400, np.random.default_rng(0))
+    pts = handset_targets(cut_config(tmp, None), 400)
     w = np.random.default_rng(1).integers(1, 4, len(pts))
     csv = tmp / "targets.csv"
     np.savetxt(csv, np.column_stack([pts, w]), delimiter=",", header="x,y,w", comments="")

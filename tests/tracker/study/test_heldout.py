@@ -13,12 +13,10 @@ import pytest
 from scipy import stats
 from sklearn.base import clone
 
-from pipeline.build.region import build_features, build_prior
-from pipeline.config.learn import load_learn_config
 from pipeline.gis.grid import Grid
 from pipeline.learn.run import learning_inputs
 from pipeline.prior.terrain import TerrainPrior
-from tests.pipeline.gis_helpers import region_doc, write_config
+from tests.pipeline.gis_helpers import handset_targets, region_doc, write_config
 from tracker.cli import main
 from tracker.study.heldout import (
     HeldoutConfig,
@@ -39,11 +37,7 @@ def region_targets(tmp_path_factory):
     doc = region_doc(bounds=[302000, 6190000, 308000, 6196000])
     doc["learn"] = {"hybrid": False}
     region = write_config(tmp / "region.toml", doc)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        config, _ = load_learn_config(region)
-        stack = build_features(config, progress=False)
-    pts = build_prior(stack, config.model).sample(1200, np.random.default_rng(0))
+    pts = handset_targets(region, 1200)
     csv = tmp / "targets.csv"
     np.savetxt(csv, pts, delimiter=",", header="x,y", comments="")
     return region, csv, tmp
