@@ -151,7 +151,7 @@ class CachedIntegrator:
             return np.empty(0)
         table = self.table2 if squared else self.table
         blob = np.concatenate([means.reshape(n, -1), covs.reshape(n, -1)], axis=1).tobytes()
-        width = len(blob) // n if n else 0
+        width = len(blob) // n
         keys = [blob[i * width:(i + 1) * width] for i in range(n)]
         values = [table.get(k) for k in keys]
         miss = [i for i, v in enumerate(values) if v is None]
