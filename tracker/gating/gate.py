@@ -117,17 +117,18 @@ def gate_checked(sc: Scene, threshold: float | None = None, *, prob: float | Non
     if nt == 0 or nr == 0:
         return _result(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), return_d2)
     plan = _plan(sc, gamma, w_logdet, n_projections, orientation, constants)
-    by_bin, bin_start = counting_order(plan.bin_of_report, plan.m)
+    by_bin, bin_start = (counting_order(plan.bin_of_report, plan.m) if plan.m > 1
+                         else (np.arange(nr), np.array([0, nr])))
     if plan.on_reports:  # tracks query in spatial order at mid-scan: a permuted copy
         t_mid = 0.5 * (sc.rtime.min() + sc.rtime.max()) if sc.moving else 0.0
         t_perm = spatial_order(sc.tpos + (t_mid - sc.ttime)[:, None] * sc.tvel
                                if sc.moving else sc.tpos)
         sc = replace(sc, tpos=take_rows(sc.tpos, t_perm), tcov=take_rows(sc.tcov, t_perm))
-        if sc.moving:  # static tracks have zero velocities, times and noise in any order
+        if sc.moving:  # static tracks have zero velocities, times, noise and speeds in any order
             sc = replace(sc, tvel=take_rows(sc.tvel, t_perm), ttime=sc.ttime[t_perm],
                          tq=sc.tq[t_perm])
-        plan = replace(plan, reach=plan.reach.take(t_perm), speed=plan.speed[t_perm],
-                       gamma_t=plan.gamma_t[t_perm])
+            plan = replace(plan, speed=plan.speed[t_perm])
+        plan = replace(plan, reach=plan.reach.take(t_perm), gamma_t=plan.gamma_t[t_perm])
     else:  # each bin's reports query in spatial order: a copy permuted so that bins are slices
         r_order = spatial_order(sc.rpos)
         r_perm = r_order[counting_order(plan.bin_of_report[r_order], plan.m)[0]]
@@ -291,7 +292,8 @@ def _gate_bin(sc: Scene, plan: _Plan, k: int, reports: np.ndarray | slice, q_ids
         return query_grid(
             np.ascontiguousarray(tpos_k), rad, True, q_ids, q_rank, rows, *_grid_args(grid),
             sc.tpos, sc.tvel, sc.tcov, sc.ttime, sc.tq, take_rows(sc.rpos, rows),
-            take_rows(sc.rcov, rows), sc.rtime[rows], sc.moving, gamma, w_logdet)
+            take_rows(sc.rcov, rows), sc.rtime[rows] if sc.moving else sc.rtime[:rows.size],
+            sc.moving, gamma, w_logdet)
     reach = sig + w * plan.speed
     bid, nb = _bucket_ids(reach, buckets)
     sig_b = _bucket_max(sig, bid, nb)

@@ -9,6 +9,7 @@ over queries; nothing of size N_T x N_R is ever formed.
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numba
@@ -37,7 +38,7 @@ class Grid:
     cell: np.ndarray       # (K,) cell edge per bucket
     dims: np.ndarray       # (K, d) int64 cells per axis
     seg: np.ndarray        # (K + 1,) offsets into keys / members
-    keys: np.ndarray       # (n,) sorted linear cell keys, per bucket
+    keys: np.ndarray       # (n,) sorted linear cell keys, per bucket (zeros in dense buckets)
     members: np.ndarray    # (n,) global index of each sorted point
     dense: np.ndarray      # (K,) bool: bucket has a dense start table
     table_seg: np.ndarray  # (K + 1,) offsets into table
@@ -57,7 +58,7 @@ def build_grid(pos: np.ndarray, members: np.ndarray, bucket: np.ndarray, n_bucke
     cells = np.ones(n_buckets)
     dims = np.ones((n_buckets, dim), dtype=np.int64)
     dense = np.zeros(n_buckets, dtype=np.bool_)
-    keys_all = np.empty(pos.shape[0], dtype=np.int64)
+    keys_all = np.zeros(pos.shape[0], dtype=np.int64)
     members_all = np.empty(pos.shape[0], dtype=np.int64)
     tables, table_seg = [], [0]
     for b in range(n_buckets):
@@ -67,7 +68,7 @@ def build_grid(pos: np.ndarray, members: np.ndarray, bucket: np.ndarray, n_bucke
             tables.append(np.zeros(0, dtype=np.int64))
             table_seg.append(table_seg[-1])
             continue
-        p = pos[idx]
+        p = pos if n_buckets == 1 else pos[idx]
         lo, hi = bounding_box(p)
         extent = hi - lo
         h = max(float(cell[b]), float(extent.max()) / _MAX_AXIS_CELLS, 1e-300)
@@ -91,8 +92,9 @@ def build_grid(pos: np.ndarray, members: np.ndarray, bucket: np.ndarray, n_bucke
         else:
             o = np.argsort(keys, kind="stable")
             tables.append(np.zeros(0, dtype=np.int64))
-        keys_all[seg[b]:seg[b + 1]] = keys[o]
-        members_all[seg[b]:seg[b + 1]] = members[idx[o]]
+        if not dense[b]:  # a dense bucket is searched through its table alone
+            keys_all[seg[b]:seg[b + 1]] = keys[o]
+        members_all[seg[b]:seg[b + 1]] = members[o] if n_buckets == 1 else members[idx[o]]
         table_seg.append(table_seg[-1] + tables[-1].size)
     return Grid(origin, cells, dims, seg, keys_all, members_all, dense,
                 np.asarray(table_seg, dtype=np.int64),
@@ -101,15 +103,17 @@ def build_grid(pos: np.ndarray, members: np.ndarray, bucket: np.ndarray, n_bucke
 
 def take_rows(a: np.ndarray, rows: np.ndarray) -> np.ndarray:
     """a[rows] for C-contiguous arrays of any rank (a flat gather; numpy's fancy indexing of
-    3-D arrays is several times slower)."""
+    3-D arrays is several times slower), on as many threads as its size warrants."""
     flat = np.ascontiguousarray(a).reshape(a.shape[0], int(np.prod(a.shape[1:])))
-    return _take_rows(flat, rows).reshape((rows.shape[0],) + a.shape[1:])
+    with threads_for(rows.shape[0] * flat.shape[1]):
+        out = _take_rows(flat, rows)
+    return out.reshape((rows.shape[0],) + a.shape[1:])
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _take_rows(a, rows):
     out = np.empty((rows.shape[0], a.shape[1]), a.dtype)
-    for i in range(rows.shape[0]):
+    for i in prange(rows.shape[0]):
         out[i] = a[rows[i]]
     return out
 
@@ -194,18 +198,22 @@ def query_grid(*args):
     not from the number of queries (a few queries with huge radii are as much work as many
     small ones)."""
     nq = args[0].shape[0]
-    before = numba.get_num_threads()
-    try:
-        numba.set_num_threads(_threads(nq, before))
+    with threads_for(nq):
         cand = _scan_kernel(*args)
-        numba.set_num_threads(_threads(nq + int(cand[-1]), before))
+    with threads_for(nq + int(cand[-1])):
         return _fill_kernel(cand, *args)
+
+
+@contextmanager
+def threads_for(work: int):
+    """Run the parallel kernels of the block on as many threads as ``work`` (items) warrants:
+    one per _WORK_PER_THREAD, at most the ones numba has."""
+    before = numba.get_num_threads()
+    numba.set_num_threads(max(1, min(before, work // _WORK_PER_THREAD)))
+    try:
+        yield
     finally:
         numba.set_num_threads(before)
-
-
-def _threads(work: int, available: int) -> int:
-    return max(1, min(available, work // _WORK_PER_THREAD))
 
 
 @njit(cache=True, parallel=True)
@@ -318,7 +326,21 @@ def _visit(i, qpos, qrad, query_is_track, q_ids, p_ids, origin, cell, dims, seg,
 @njit(cache=True)
 def counting_order(keys, n_keys):
     """Stable permutation sorting integer keys in [0, n_keys) (O(n + n_keys)), and the start
-    offset of each key (n_keys + 1,)."""
+    offset of each key (n_keys + 1,).
+
+    Small inputs, one counting sort; more than _FLAT_KEYS keys and values, two (the high bits of
+    the key, then the low bits within each high value), so that every count lives in cache: one counting sort over millions of keys spends its time on cache misses."""
+    if n_keys <= _FLAT_KEYS or keys.shape[0] <= _FLAT_KEYS:
+        return _counting_order_flat(keys, n_keys)
+    return _counting_order_split(keys, n_keys)
+
+
+# Key ranges and inputs both above this are sorted in two digits by counting_order.
+_FLAT_KEYS = 1 << 16
+
+
+@njit(cache=True)
+def _counting_order_flat(keys, n_keys):
     start = np.zeros(n_keys + 1, dtype=np.int64)
     for k in keys:
         start[k + 1] += 1
@@ -329,6 +351,52 @@ def counting_order(keys, n_keys):
     for i in range(keys.shape[0]):
         order[fill[keys[i]]] = i
         fill[keys[i]] += 1
+    return order, start
+
+
+@njit(cache=True)
+def _counting_order_split(keys, n_keys):
+    """counting_order in two digits: stably by key >> shift, then within each high value by the
+    low bits (the same permutation and offsets as one counting sort)."""
+    n = keys.shape[0]
+    shift = 0
+    while (1 << (2 * shift)) < n_keys:
+        shift += 1
+    base = np.int64(1) << shift
+    mask = base - 1
+    n_hi = (n_keys + base - 1) >> shift
+    hi_start = np.zeros(n_hi + 1, dtype=np.int64)
+    for k in keys:
+        hi_start[(k >> shift) + 1] += 1
+    for h in range(n_hi):
+        hi_start[h + 1] += hi_start[h]
+    fill = hi_start[:-1].copy()
+    by_hi = np.empty(n, dtype=np.int64)
+    lo = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        h = keys[i] >> shift
+        by_hi[fill[h]] = i
+        lo[fill[h]] = keys[i] & mask
+        fill[h] += 1
+    start = np.empty(n_keys + 1, dtype=np.int64)
+    start[n_keys] = n
+    order = np.empty(n, dtype=np.int64)
+    count = np.empty(base, dtype=np.int64)
+    for h in range(n_hi):
+        s, e = hi_start[h], hi_start[h + 1]
+        k0 = h << shift
+        m = min(base, n_keys - k0)
+        count[:m] = 0
+        for a in range(s, e):
+            count[lo[a]] += 1
+        at = s
+        for j in range(m):
+            start[k0 + j] = at
+            at += count[j]
+            count[j] = start[k0 + j]
+        for a in range(s, e):
+            order[count[lo[a]]] = by_hi[a]
+            count[lo[a]] += 1
     return order, start
 
 

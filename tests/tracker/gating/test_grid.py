@@ -9,8 +9,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from tests.tracker.gating.test_oracle import assert_same_pairs, brute_force, random_covs
+from tracker.gating import grid
 from tracker.gating.gate import gate
-from tracker.gating.grid import sort_pairs, sorted_pairs
+from tracker.gating.grid import counting_order, sort_pairs, sorted_pairs
 
 
 @st.composite
@@ -46,6 +47,35 @@ def test_sort_pairs_is_lexsort(pairs):
     ts, rs, ds = sorted_pairs(t, r, d2, n_t, n_r)
     assert np.array_equal(ts, t[want]) and np.array_equal(rs, r[want])
     assert np.array_equal(ds, d2[want])
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 3000), st.integers(1, 200_000), st.sampled_from(["uniform", "few", "top"]),
+       st.integers(0, 2**31))
+def test_counting_order_is_a_stable_sort(n, n_keys, spread, seed):
+    """Both digit schemes (flat, and two digits above _FLAT_KEYS keys and values) give numpy's
+    stable argsort and the offsets searchsorted finds."""
+    rng = np.random.default_rng(seed)
+    hi = {"uniform": n_keys, "few": min(n_keys, 5), "top": n_keys}[spread]
+    keys = rng.integers(n_keys - hi if spread == "top" else 0, hi if spread != "top" else n_keys, n)
+    flat = grid._FLAT_KEYS
+    try:
+        for small in (flat, 0):  # the production threshold, then two digits whatever the size
+            grid._FLAT_KEYS = small
+            order, start = counting_order.py_func(keys, n_keys)
+            assert np.array_equal(order, np.argsort(keys, kind="stable"))
+            assert np.array_equal(start, np.searchsorted(keys[order], np.arange(n_keys + 1)))
+    finally:
+        grid._FLAT_KEYS = flat
+
+
+def test_counting_order_two_digits_compiled():
+    """The compiled two-digit path on a grid-sized input (millions of cells)."""
+    rng = np.random.default_rng(3)
+    keys = rng.integers(0, 3_000_001, 200_000)
+    order, start = counting_order(keys, 3_000_001)
+    assert np.array_equal(order, np.argsort(keys, kind="stable"))
+    assert np.array_equal(start, np.searchsorted(keys[order], np.arange(3_000_002)))
 
 
 def test_sort_pairs_of_one_long_reversed_run():
