@@ -130,7 +130,7 @@ def _slope_feature(spec: FeatureSpec, layers: _Layers, grid) -> Feature:
     if layer.kind == "pointcloud":
         slope = layers.surface(spec.layer).slope
     else:
-        slope = slope_deg(read_dem(layer, grid), grid.dx, grid.dy)
+        slope = slope_deg(read_dem(layer, grid), grid.dx, grid.dy, in_place=True)  # the DEM is ours: no second grid
     return Feature(spec.name, slope, "continuous", units="deg")
 
 
@@ -285,6 +285,8 @@ def build_region_prior(
     model = region_model(config, model)
     check_memory(config)
     stack = build_features(config, progress)
+    if set(model.terms) <= set(stack.features):  # free features no table reads (a classes feature's source) first
+        stack = FeatureStack(stack.grid, {name: stack[name] for name in model.terms})
     r = _likelihood(stack, model)
     # The features are done with once r is: free them (~20 bytes a cell) before the density and its
     # tables are made, and let the density take r's buffer (the same numbers, 8 bytes a cell less).

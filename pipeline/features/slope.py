@@ -21,25 +21,15 @@ import numpy as np
 from pipeline.gis.grid import NODATA_CODE
 
 
-@nb.njit(cache=True)
-def _z(dem, r, c):
-    """DEM value at (r, c), extrapolated linearly one cell beyond the edges (first along columns, then rows)."""
-    h, w = dem.shape
+@nb.njit(cache=True, inline="always")
+def _at(row, c):
+    """Value of a row at column c, extrapolated linearly one cell beyond either end."""
+    w = row.shape[0]
     if c < 0:
-        return 2.0 * _z_col(dem, r, 0) - _z_col(dem, r, 1)
+        return 2.0 * row[0] - row[1]
     if c >= w:
-        return 2.0 * _z_col(dem, r, w - 1) - _z_col(dem, r, w - 2)
-    return _z_col(dem, r, c)
-
-
-@nb.njit(cache=True)
-def _z_col(dem, r, c):
-    h = dem.shape[0]
-    if r < 0:
-        return 2.0 * np.float64(dem[0, c]) - np.float64(dem[1, c])
-    if r >= h:
-        return 2.0 * np.float64(dem[h - 1, c]) - np.float64(dem[h - 2, c])
-    return np.float64(dem[r, c])
+        return 2.0 * row[w - 1] - row[w - 2]
+    return row[c]
 
 
 @nb.njit(cache=True)
@@ -59,42 +49,66 @@ def _horn(a, b, c, d, e, f, g, h, i, inv8dx, inv8dy):
     return np.degrees(np.arctan(np.sqrt(gx * gx + gy * gy)))
 
 
+@nb.njit(cache=True)
+def _original_row(dem, r, out):
+    """Row r of the DEM as float64 into ``out``; rows -1 and h extrapolated linearly from the two
+    rows inward (so planes stay exact at the edges and corners)."""
+    h = dem.shape[0]
+    for c in range(dem.shape[1]):
+        if r < 0:
+            out[c] = 2.0 * np.float64(dem[0, c]) - np.float64(dem[1, c])
+        elif r >= h:
+            out[c] = 2.0 * np.float64(dem[h - 1, c]) - np.float64(dem[h - 2, c])
+        else:
+            out[c] = np.float64(dem[r, c])
+
+
 @nb.njit(cache=True, parallel=True)
-def _horn_slope(dem: np.ndarray, inv8dx: float, inv8dy: float, out: np.ndarray) -> int:
-    """Fill ``out`` with Horn slopes; returns the number of cells with data. No padded copy of the DEM:
-    interior cells index it directly, edge cells extrapolate on the fly."""
+def _horn_slope(dem: np.ndarray, inv8dx: float, inv8dy: float, out: np.ndarray, chunks: int) -> int:
+    """Fill ``out`` with Horn slopes (``out`` may be ``dem`` itself); returns the number of cells with
+    data. Each of ``chunks`` bands of rows keeps float64 copies of the original rows above, at and
+    below the row it writes, so no padded copy of the DEM exists and writing in place is safe: the
+    rows just outside each band are copied before any band is written."""
     h, w = dem.shape
-    valid = 0
-    for r in nb.prange(h):
-        edge_row = r == 0 or r == h - 1
-        for c in range(w):
-            e = np.float64(dem[r, c])
-            if not np.isfinite(e):
-                out[r, c] = np.nan
-                continue
-            valid += 1
-            if edge_row or c == 0 or c == w - 1:
-                out[r, c] = _horn(
-                    _z(dem, r - 1, c - 1), _z(dem, r - 1, c), _z(dem, r - 1, c + 1),
-                    _z(dem, r, c - 1), e, _z(dem, r, c + 1),
-                    _z(dem, r + 1, c - 1), _z(dem, r + 1, c), _z(dem, r + 1, c + 1),
-                    inv8dx, inv8dy,
-                )
+    bounds = np.linspace(0, h, chunks + 1).astype(np.int64)
+    edges = np.empty((chunks, 2, w))  # original rows bounds[k] - 1 and bounds[k + 1] per band
+    for k in range(chunks):
+        _original_row(dem, bounds[k] - 1, edges[k, 0])
+        _original_row(dem, bounds[k + 1], edges[k, 1])
+    valid = np.zeros(chunks, dtype=np.int64)
+    for k in nb.prange(chunks):
+        s, e = bounds[k], bounds[k + 1]
+        above, centre, below = edges[k, 0].copy(), np.empty(w), np.empty(w)
+        if s < e:
+            _original_row(dem, s, centre)
+        for r in range(s, e):
+            if r + 1 < e:
+                _original_row(dem, r + 1, below)
             else:
+                below[:] = edges[k, 1]
+            for c in range(w):
+                m = centre[c]
+                if not np.isfinite(m):
+                    out[r, c] = np.nan
+                    continue
+                valid[k] += 1
                 out[r, c] = _horn(
-                    np.float64(dem[r - 1, c - 1]), np.float64(dem[r - 1, c]), np.float64(dem[r - 1, c + 1]),
-                    np.float64(dem[r, c - 1]), e, np.float64(dem[r, c + 1]),
-                    np.float64(dem[r + 1, c - 1]), np.float64(dem[r + 1, c]), np.float64(dem[r + 1, c + 1]),
+                    _at(above, c - 1), _at(above, c), _at(above, c + 1),
+                    _at(centre, c - 1), m, _at(centre, c + 1),
+                    _at(below, c - 1), _at(below, c), _at(below, c + 1),
                     inv8dx, inv8dy,
                 )
-    return valid
+            above, centre, below = centre, below, above
+    return valid.sum()
 
 
-def slope_deg(dem: np.ndarray, dx: float, dy: float) -> np.ndarray:
+def slope_deg(dem: np.ndarray, dx: float, dy: float, in_place: bool = False) -> np.ndarray:
     """Slope in degrees (0..90) of a north-up DEM (metres) with cells ``dx`` by ``dy`` metres.
 
     NaN (and +-inf) mark no data. Returns float32 for float32 input, float64 otherwise; NaN where the DEM is NaN.
-    Raises ValueError for a DEM that is not 2-D, smaller than 2 x 2, or entirely no data.
+    ``in_place``: write the slopes over a float32/float64 C-contiguous ``dem`` (the same numbers, no
+    second grid-size array). Raises ValueError for a DEM that is not 2-D, smaller than 2 x 2, or
+    entirely no data.
     """
     dem = np.asarray(dem)
     if dem.ndim != 2:
@@ -104,10 +118,13 @@ def slope_deg(dem: np.ndarray, dx: float, dy: float) -> np.ndarray:
     for name, value in (("dx", dx), ("dy", dy)):
         if not (np.isfinite(value) and value > 0):
             raise ValueError(f"slope_deg: {name} must be a positive cell size in metres, got {value}")
+    if in_place and not (dem.dtype in (np.float32, np.float64) and dem.flags.c_contiguous and dem.flags.writeable):
+        raise ValueError(f"slope_deg: in_place needs a writeable C-contiguous float DEM, got {dem.dtype}")
     if dem.dtype not in (np.float32, np.float64):
         dem = dem.astype(np.float64)
-    out = np.empty(dem.shape, dtype=dem.dtype)
-    if _horn_slope(dem, 1.0 / (8.0 * dx), 1.0 / (8.0 * dy), out) == 0:
+    out = dem if in_place else np.empty(dem.shape, dtype=dem.dtype)
+    chunks = min(dem.shape[0], 4 * nb.get_num_threads())
+    if _horn_slope(dem, 1.0 / (8.0 * dx), 1.0 / (8.0 * dy), out, chunks) == 0:
         raise ValueError("slope_deg: the DEM is entirely no data (NaN)")
     return out
 

@@ -39,6 +39,9 @@ STYLE_SAMPLE_EDGE = 1024
 """The prior's style is fitted to every k-th row and column, k chosen so at most this many of each."""
 BUILD_TAG = "PRIOR_BUILD"
 """The tag holding a prior's build id (32 hex digits, random per build)."""
+WRITE_CACHE_BYTES = 256 << 20
+"""GDAL's block cache while a GeoTIFF is written (bytes): the default, 5% of RAM, would hold most of
+a large grid's blocks again beside the arrays they are written from."""
 TABLE_TAGS = ("SAT_SHA1", "SAT2_SHA1")
 """The tags holding the SHA-1 (hex) of the data bytes after the ``.npy`` header of each table, as
 :func:`sat_paths` orders them."""
@@ -69,7 +72,7 @@ def cog_writer(path: str | Path, grid: Grid, dtype: str, resampling: str = "AVER
     with GDAL's ``resampling`` (AVERAGE for densities, NEAREST for category codes). ``options``: extra
     profile keys (e.g. ``nodata``). The uncompressed source lives in a scratch folder beside ``path``."""
     path = Path(path)
-    with scratch_dir(path) as scratch:
+    with scratch_dir(path) as scratch, rasterio.Env(GDAL_CACHEMAX=WRITE_CACHE_BYTES):
         plain = scratch / "plain.tif"
         # the COG copy compresses; its uncompressed source is cheaper to write
         with rasterio.open(plain, "w", **geotiff_profile(grid, dtype, None, BIGTIFF="IF_SAFER", **options)) as dst:

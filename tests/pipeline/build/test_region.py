@@ -11,13 +11,13 @@ import rasterio
 import shapely
 from affine import Affine
 
-from pipeline.build.region import build_features, build_prior, write_features
+from pipeline.build.region import build_features, build_prior, build_region_prior, write_features
 from pipeline.config.region import load_config
 from pipeline.features.stack import Feature, FeatureStack
 from pipeline.gis.grid import NODATA_CODE, Grid
 from pipeline.gis.layers import LayerError
 from pipeline.prior.likelihood import LikelihoodError, LikelihoodModel
-from pipeline.prior.terrain import PriorError
+from pipeline.prior.terrain import PriorError, TerrainPrior
 from tests.pipeline.gis_helpers import REGION_TOML, write_config, write_raster, write_vector
 
 
@@ -49,6 +49,17 @@ def test_bundled_prior_is_the_normalised_product_of_hand_set_tables(region) -> N
     r = (stack["water"].values == 0) * (stack["obstacles"].values == 0) * slope_r * road_r * surface_r * veg_r
     np.testing.assert_allclose(prior.density, r / (r.sum() * cell_area), rtol=1e-12)
     assert prior.model["likelihood"]["road_distance"] == {"type": "road", "rmd": 100.0, "mv": 0.1, "nodata": 1.0}
+
+
+def test_region_prior_is_the_plain_product_bit_for_bit(region) -> None:
+    """build_region_prior (slope written over its DEM, features no table reads freed, r evaluated in
+    bands, the density in r's buffer) against the plain path: the model evaluated over the whole
+    stack, normalised into new arrays."""
+    cfg, stack = region
+    got = build_region_prior(cfg, progress=False)
+    want = TerrainPrior.from_array(cfg.model.evaluate(stack), cfg.grid)
+    for a, b in ((got.density, want.density), (got.sat, want.sat), (got.sat2, want.sat2)):
+        np.testing.assert_array_equal(a, b)
 
 
 def sample_cells(n: int = 4000, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
