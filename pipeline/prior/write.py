@@ -39,7 +39,7 @@ STYLE_SAMPLE_EDGE = 1024
 """The prior's style is fitted to every k-th row and column, k chosen so at most this many of each."""
 BUILD_TAG = "PRIOR_BUILD"
 """The tag holding a prior's build id (32 hex digits, random per build)."""
-WRITE_CACHE_BYTES = 256 << 20
+WRITE_CACHE_BYTES = 64 << 20
 """GDAL's block cache while a GeoTIFF is written (bytes): the default, 5% of RAM, would hold most of
 a large grid's blocks again beside the arrays they are written from."""
 TABLE_TAGS = ("SAT_SHA1", "SAT2_SHA1")

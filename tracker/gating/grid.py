@@ -26,6 +26,9 @@ _DENSE_CELLS_PER_POINT = 8
 # Work (queries + candidates scanned) per thread below which a parallel launch costs more than
 # it saves (on a loaded machine a parallel region can wait tens of ms for a descheduled worker).
 _WORK_PER_THREAD = 100_000
+# Elements per thread of a gather (take_rows): a copy costs so little per element that a parallel
+# launch pays off only for millions of them.
+_GATHER_PER_THREAD = 1_000_000
 # Runs of pairs of one track longer than this are merge-sorted instead of insertion-sorted.
 _INSERTION_MAX = 32
 
@@ -105,7 +108,7 @@ def take_rows(a: np.ndarray, rows: np.ndarray) -> np.ndarray:
     """a[rows] for C-contiguous arrays of any rank (a flat gather; numpy's fancy indexing of
     3-D arrays is several times slower), on as many threads as its size warrants."""
     flat = np.ascontiguousarray(a).reshape(a.shape[0], int(np.prod(a.shape[1:])))
-    with threads_for(rows.shape[0] * flat.shape[1]):
+    with threads_for(rows.shape[0] * flat.shape[1], _GATHER_PER_THREAD):
         out = _take_rows(flat, rows)
     return out.reshape((rows.shape[0],) + a.shape[1:])
 
@@ -205,11 +208,11 @@ def query_grid(*args):
 
 
 @contextmanager
-def threads_for(work: int):
+def threads_for(work: int, per_thread: int = _WORK_PER_THREAD):
     """Run the parallel kernels of the block on as many threads as ``work`` (items) warrants:
-    one per _WORK_PER_THREAD, at most the ones numba has."""
+    one per ``per_thread`` items, at most the ones numba has."""
     before = numba.get_num_threads()
-    numba.set_num_threads(max(1, min(before, work // _WORK_PER_THREAD)))
+    numba.set_num_threads(max(1, min(before, work // per_thread)))
     try:
         yield
     finally:
