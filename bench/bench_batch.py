@@ -78,11 +78,12 @@ def run(quick: bool = False) -> dict:
     ch = ba.chain(rep, g[keep])
     setup_s, setup_cpu = clock.read()
     lp0 = ch.lp
+    setup_integrals = ba.stats_["integrals"]
     clock = _Clock()
     moved = ch.sweep(1.0, np.random.default_rng(1))
     sweep_s, sweep_cpu = clock.read()
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
-    rounds, integrals = ba.stats_["rounds"], ba.stats_["integrals"]
+    rounds, integrals = ba.stats_["rounds"], ba.stats_["integrals"] - setup_integrals
     total_s, total_cpu = greedy_s + setup_s + sweep_s, greedy_cpu + setup_cpu + sweep_cpu
     base = BatchAssociator(prior, "TT", tau=-1.7, gater=gate_unchecked).chain(rep, g[keep])
     clock = _Clock()
@@ -102,7 +103,7 @@ def run(quick: bool = False) -> dict:
     return {"n_reports": n_reports, "n_targets": n_targets, "greedy_s": greedy_s, "greedy_cpu_s": greedy_cpu,
             "chain_setup_s": setup_s, "chain_setup_cpu_s": setup_cpu, "sweep_s": sweep_s, "sweep_cpu_s": sweep_cpu,
             "total_s": total_s, "total_cpu_s": total_cpu, "moved": moved, "rounds": rounds, "integrals": integrals,
-            "lp_greedy": lp0, "lp_after_sweep": ch.lp, "n_greedy": int(np.unique(g[keep]).size),
+            "setup_integrals": setup_integrals, "lp_greedy": lp0, "lp_after_sweep": ch.lp, "n_greedy": int(np.unique(g[keep]).size),
             "n_after": int(ch.istate[0]), "peak_rss_gib": rss,
             "sweep_gating_all_clusters_s": base_s, "sweep_gating_all_clusters_cpu_s": base_cpu,
             "sweep_speedup_vs_all_clusters": base_s / sweep_s, "sweep_cpu_ratio_vs_all_clusters": base_cpu / sweep_cpu,
@@ -110,17 +111,18 @@ def run(quick: bool = False) -> dict:
             "goal_total_s": GOAL_TOTAL_S, "goal_peak_gib": GOAL_PEAK_GIB, "meets_goal": meets if not quick else None,
             "table": [
                 {"stage": "greedy TT", "wall s": round(greedy_s, 2), "CPU s": round(greedy_cpu, 2)},
-                {"stage": "chain set-up", "wall s": round(setup_s, 2), "CPU s": round(setup_cpu, 2)},
+                {"stage": "chain set-up", "wall s": round(setup_s, 2), "CPU s": round(setup_cpu, 2),
+                 "integrals": setup_integrals},
                 {"stage": "one Gibbs sweep", "wall s": round(sweep_s, 2), "CPU s": round(sweep_cpu, 2),
                  "rounds": rounds, "integrals": integrals, "moved": moved},
                 {"stage": "total (goal <= 30 s)", "wall s": round(total_s, 2), "CPU s": round(total_cpu, 2),
-                 "goal": GOAL_TOTAL_S, "meets_goal": total_s <= GOAL_TOTAL_S},
-                {"stage": "peak RSS GiB (goal <= 4)", "wall s": round(rss, 2), "goal": GOAL_PEAK_GIB,
-                 "meets_goal": rss <= GOAL_PEAK_GIB},
+                 "goal": GOAL_TOTAL_S, "meets_goal": None if quick else total_s <= GOAL_TOTAL_S},
+                {"stage": "peak RSS (GiB, goal <= 4)", "GiB": round(rss, 2), "goal": GOAL_PEAK_GIB,
+                 "meets_goal": None if quick else rss <= GOAL_PEAK_GIB},
                 {"stage": "baseline sweep: gater on all live clusters", "wall s": round(base_s, 2),
                  "CPU s": round(base_cpu, 2), "same chain": same},
             ] + [f"sweep phase {k}: {100 * v:.0f} % (cProfile, third sweep)" for k, v in shares.items()] + [
                 f"{n_reports:,} reports / {n_targets:,} targets: greedy + set-up + sweep {total_s:.1f} s wall "
-                f"({'meets' if meets else 'misses'} the 30 s goal; quick scene has no goal), peak {rss:.2f} GiB, "
+                f"({'quick scene: no goal' if quick else ('meets' if meets else 'misses') + ' the 30 s / 4 GiB goal'}), peak {rss:.2f} GiB, "
                 f"sweep x{base_s / sweep_s:.2f} over gating all live clusters in the same run, load {load:.1f}",
             ]}

@@ -220,7 +220,12 @@ class _Chain:
         for dst, src in zip((self.cnt, self.P, self.h, self.q, self.ld), _sums(self.labels, rs, n), strict=True):
             dst[:n] = src
         self.logL = np.zeros(K)
-        self.logL[:n] = self._ll(self.cnt[:n], self.P[:n], self.h[:n], self.q[:n], self.ld[:n], self._masks(np.arange(n)))
+        # a singleton's ln L is its report's (the same sums, so the same integral): integrate the rest
+        member = np.zeros(n, np.int64)
+        member[self.labels] = np.arange(K)
+        self.logL[:n] = single_ll[member]
+        mc = np.flatnonzero(self.cnt[:n] > 1)
+        self.logL[mc] = self._ll(self.cnt[mc], self.P[mc], self.h[mc], self.q[mc], self.ld[mc], self._masks(mc))
         self.cb, self.cB = np.zeros((K, 2)), np.tile(np.eye(2), (K, 1, 1))
         self.cb[:n], self.cB[:n] = self._gaussians(self.P[:n], self.h[:n])
         self.lam_v = lambda_max(rs.V)
