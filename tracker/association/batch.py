@@ -281,7 +281,7 @@ class _Chain:
         """Gated clusters of the round's reports other than their own: CSR (ptr (m+1,), ids ascending
         per report). From the cluster index, or (a gater given) by gating all live clusters with it."""
         if self.o.given_gater is None:
-            return self.o.index_gated(self.index, zc, V, self.lam_v[U], own)
+            return self.index.gated(zc, V, self.lam_v[U], own)
         live = np.flatnonzero(self.cnt > 0)
         c_idx, r_idx = self.o.gater(self.cb[live], self.cB[live], zc, V, threshold=self.o.gamma)
         cl, pos = live[np.asarray(c_idx, np.int64)], np.asarray(r_idx, np.int64)
@@ -301,7 +301,7 @@ class _Chain:
         # own cluster without the report: its Gaussian decides whether staying is a gated option
         multi, mi, bm, Bm, own_gated = own_without(U, own, self.cnt, self.P, self.h, rs.vinv, rs.hv, zc, V, gam)
         # possible new clusters of each report ({i}, own \ i, C ∪ i) and who they gate
-        earlier = self.o.dependency(zc, V, self.lam_v[U], gam, mi, bm, Bm, pos, cl, self.P, self.h, U, rs.vinv, rs.hv)
+        earlier = earlier_dependency(zc, V, self.lam_v[U], gam, mi, bm, Bm, pos, cl, self.P, self.h, U, rs.vinv, rs.hv)
         self.o.stamp += 1
         sel = select_round(own, ptr, cl, earlier, self.o.blocked(self.K), self.o.stamp)
         # options of the selected reports: own (if gated and not alone) and gated clusters, by cluster id
@@ -471,10 +471,6 @@ class BatchAssociator:
         self.integrator = one_thread_when_small(integrator or _default_integrator(), 1)
         self.gater = one_thread_when_small(gater or _default_gater(), 2)
         self.given_gater = gater  # None: rounds gate through the chain's cluster index
-        # the round kernels are parallel; on a loaded machine a parallel launch for a small round costs
-        # ~30x its work, so rounds below 4096 reports run them on one thread
-        self.index_gated = one_thread_when_small(ClusterIndex.gated, 1)
-        self.dependency = one_thread_when_small(earlier_dependency, 0)
         self.stamp = 0
         self._blocked = np.zeros(0, np.int64)
         self.stats_ = {"rounds": 0, "integrals": 0, "sweeps": 0, "split_merge_accepted": 0}

@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 from tracker.models.sfunc import log_s_code
 
@@ -277,15 +277,14 @@ def _mark(owner, bx, by, B00, B01, B11, zc, V, lam_v_max, gamma, lo, cell, nx, n
                     earlier[max(q, owner)] = True
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True)
 def earlier_dependency(zc, V, lam_v, gamma, multi_pos, bm, Bm, pair_pos, pair_cl, P, h, reps, vinv, hv):
     """Per round position p (scan order): True when a possible new cluster of an earlier position gates
     p's report, or one of p's gates an earlier report. The possible new clusters of position a are
     {a} (z_a, V_a), its own cluster without it (``bm``/``Bm`` at ``multi_pos``), and each gated cluster
     C with it (information sums P[C] + V⁻¹, h[C] + V⁻¹z of report ``reps[a]``, for the (``pair_pos``,
     ``pair_cl``) pairs). Positions in m relative to the chain's origin. The same links as gating every
-    possible new cluster against the round's reports, without forming the pairs; the possible clusters
-    run on all numba threads (the flags do not depend on their order)."""
+    possible new cluster against the round's reports, without forming the pairs."""
     m = zc.shape[0]
     earlier = np.zeros(m, dtype=np.bool_)
     if m == 0:
@@ -313,8 +312,7 @@ def earlier_dependency(zc, V, lam_v, gamma, multi_pos, bm, Bm, pair_pos, pair_cl
         members[fill[key[q]]] = q
         fill[key[q]] += 1
     n_multi = multi_pos.size
-    for tt in prange(m + n_multi + pair_pos.size):  # racing writes only ever store True
-        t = np.int64(tt)  # the prange index may be unsigned: keep the ids signed
+    for t in range(m + n_multi + pair_pos.size):
         if t < m:
             a = t
             bx, by, B00, B01, B11 = zc[a, 0], zc[a, 1], V[a, 0, 0], V[a, 0, 1], V[a, 1, 1]

@@ -6,9 +6,7 @@ It answers which clusters gate a report. A pair gates when d² = rᵀ(B_D + V_i)
 within that Euclidean bound and applies the gater's own exact test
 (:func:`tracker.gating.exact.sym_d2_logdet`, the arithmetic of :func:`tracker.gating.gate.gate_unchecked`)
 in the same pass, so the gated pairs are those of gating against all live clusters, at a cost that
-does not grow with the number of clusters. Reports are independent queries: the kernel runs them on
-all numba threads (a count pass, then a fill pass), and each report's pairs come out sorted by
-cluster id, whatever the thread count.
+does not grow with the number of clusters. Each report's pairs come out sorted by cluster id.
 
 A cluster sits in the cell of its mean, clamped to the grid (a matrix-weighted mean may leave the
 reports' bounding box; clamping is monotone, so the cell ranges of queries stay correct). Cells hold
@@ -20,7 +18,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 from tracker.gating.exact import sym_d2_logdet
 
@@ -137,48 +135,41 @@ def _place(head, nxt, prv, cell_of, mean, lam, lam_max, ids, means, lams, lo, ce
 
 
 @njit(cache=True)
-def _visit(i, head, nxt, mean, cov, lam, lam_max, zc, V, lam_v, skip, gamma, lo, cell, dims, out, at) -> int:
-    """Gated clusters of report i (written to ``out[at:]`` unless ``out`` is empty); returns their number."""
-    x, y = zc[i, 0], zc[i, 1]
-    v00, v01, v11 = V[i, 0, 0], V[i, 0, 1], V[i, 1, 1]
-    reach = math.sqrt(gamma * (lam_max + lam_v[i])) * (1.0 + _SLACK)
-    x0 = min(max(int(math.floor((x - reach - lo[0]) / cell)), 0), dims[0] - 1)
-    x1 = min(max(int(math.floor((x + reach - lo[0]) / cell)), 0), dims[0] - 1)
-    y0 = min(max(int(math.floor((y - reach - lo[1]) / cell)), 0), dims[1] - 1)
-    y1 = min(max(int(math.floor((y + reach - lo[1]) / cell)), 0), dims[1] - 1)
-    n = 0
-    for iy in range(y0, y1 + 1):
-        for ix in range(x0, x1 + 1):
-            c = head[iy * dims[0] + ix]
-            while c >= 0:
-                dx, dy = x - mean[c, 0], y - mean[c, 1]
-                if c != skip[i] and dx * dx + dy * dy <= gamma * (lam[c] + lam_v[i]) * (1.0 + _SLACK) + 1e-12:
-                    d2, _ = sym_d2_logdet(cov[c, 0] + v00, cov[c, 1] + v01, 0.0, cov[c, 2] + v11, 0.0, 0.0,
-                                          dx, dy, 0.0, 2, False)
-                    if d2 <= gamma:
-                        if out.size:
-                            out[at + n] = c
-                        n += 1
-                c = nxt[c]
-    return n
-
-
-@njit(cache=True, parallel=True)
 def _gated(head, nxt, mean, cov, lam, lam_max, zc, V, lam_v, skip, gamma, lo, cell, dims):
     m = zc.shape[0]
-    counts = np.zeros(m + 1, np.int64)
-    none = np.empty(0, np.int64)
-    for i in prange(m):
-        counts[i + 1] = _visit(i, head, nxt, mean, cov, lam, lam_max, zc, V, lam_v, skip, gamma, lo, cell, dims, none, 0)
-    ptr = np.cumsum(counts)
-    out = np.empty(max(ptr[-1], 1), np.int64)
-    for i in prange(m):
-        n = _visit(i, head, nxt, mean, cov, lam, lam_max, zc, V, lam_v, skip, gamma, lo, cell, dims, out, ptr[i])
-        for a in range(ptr[i] + 1, ptr[i] + n):  # insertion sort: a report gates a few clusters
+    ptr = np.zeros(m + 1, np.int64)
+    out = np.empty(max(4 * m, 16), np.int64)
+    n = 0
+    for i in range(m):
+        x, y = zc[i, 0], zc[i, 1]
+        v00, v01, v11 = V[i, 0, 0], V[i, 0, 1], V[i, 1, 1]
+        reach = math.sqrt(gamma * (lam_max + lam_v[i])) * (1.0 + _SLACK)
+        x0 = min(max(int(math.floor((x - reach - lo[0]) / cell)), 0), dims[0] - 1)
+        x1 = min(max(int(math.floor((x + reach - lo[0]) / cell)), 0), dims[0] - 1)
+        y0 = min(max(int(math.floor((y - reach - lo[1]) / cell)), 0), dims[1] - 1)
+        y1 = min(max(int(math.floor((y + reach - lo[1]) / cell)), 0), dims[1] - 1)
+        for iy in range(y0, y1 + 1):
+            for ix in range(x0, x1 + 1):
+                c = head[iy * dims[0] + ix]
+                while c >= 0:
+                    dx, dy = x - mean[c, 0], y - mean[c, 1]
+                    if c != skip[i] and dx * dx + dy * dy <= gamma * (lam[c] + lam_v[i]) * (1.0 + _SLACK) + 1e-12:
+                        d2, _ = sym_d2_logdet(cov[c, 0] + v00, cov[c, 1] + v01, 0.0, cov[c, 2] + v11, 0.0, 0.0,
+                                              dx, dy, 0.0, 2, False)
+                        if d2 <= gamma:
+                            if n == out.size:
+                                grown = np.empty(2 * n, np.int64)
+                                grown[:n] = out
+                                out = grown
+                            out[n] = c
+                            n += 1
+                    c = nxt[c]
+        for a in range(ptr[i] + 1, n):  # insertion sort: a report gates a few clusters
             v = out[a]
             b = a - 1
             while b >= ptr[i] and out[b] > v:
                 out[b + 1] = out[b]
                 b -= 1
             out[b + 1] = v
-    return ptr, out[: ptr[-1]]
+        ptr[i + 1] = n
+    return ptr, out[:n]
