@@ -264,13 +264,16 @@ class _Chain:
         order = rng.permutation(self.K)
         u = rng.random(self.K)
         moved = 0
-        pending = order
+        deferred = order[:0]  # the scan still to do is deferred, then order[at:]
+        at = 0
         size = min(self.o.chunk, 2048)
-        while pending.size:
-            U = pending[:size]
+        while deferred.size or at < self.K:
+            fresh = order[at: at + max(size - deferred.size, 0)]
+            at += fresh.size
+            U = np.concatenate([deferred[:size], fresh])
             sel, m = self._round(U, beta, u)
             moved += m
-            pending = np.concatenate([U[~sel], pending[size:]])
+            deferred = np.concatenate([U[~sel], deferred[size:]])
             # about half of a round is selectable when its reports meet ~1 gated neighbour each:
             # round sizes follow that point (the chain does not depend on them)
             size = int(np.clip(2 * sel.sum(), 64, self.o.chunk))
