@@ -44,7 +44,14 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from pipeline.prior import TerrainPrior
-from tracker.association.batch_kernels import apply_moves, earlier_dependency, select_round
+from tracker.association.batch_kernels import (
+    apply_moves,
+    earlier_dependency,
+    info_gaussians,
+    own_without,
+    round_options,
+    select_round,
+)
 from tracker.association.cluster_index import ClusterIndex, lambda_max
 from tracker.association.greedy import (
     DEFAULT_GAMMA,
@@ -107,11 +114,12 @@ class ReportStats:
         if z.shape[1] != 2:
             raise ValueError(f"reports: positions must be 2-D, got dimension {z.shape[1]}")
         origin = z.mean(axis=0) if z.shape[0] else np.zeros(2)
-        vinv = np.linalg.inv(V)
-        vinv = 0.5 * (vinv + vinv.transpose(0, 2, 1))
-        hv = np.einsum("kij,kj->ki", vinv, z - origin)
-        qv = np.einsum("ki,ki->k", z - origin, hv)
-        return cls(vinv, hv, qv, np.linalg.slogdet(V)[1], origin, z, V)
+        _, vinv, det_v = info_gaussians(V, np.zeros_like(z))  # V⁻¹ and det V of the 2×2 closed form
+        zo = z - origin
+        hv = np.stack([vinv[:, 0, 0] * zo[:, 0] + vinv[:, 0, 1] * zo[:, 1],
+                       vinv[:, 1, 0] * zo[:, 0] + vinv[:, 1, 1] * zo[:, 1]], axis=1)
+        qv = zo[:, 0] * hv[:, 0] + zo[:, 1] * hv[:, 1]
+        return cls(vinv, hv, qv, np.log(det_v), origin, z, V)
 
 
 def cluster_log_lik(
@@ -122,27 +130,24 @@ def cluster_log_lik(
     Σ ln det V; z from ``origin``), with ONE integrate call for all of them (TT)."""
     if cnt.size == 0:
         return np.zeros(0)
-    B = np.linalg.inv(P)
-    B = 0.5 * (B + B.transpose(0, 2, 1))
-    b = np.einsum("nij,nj->ni", B, h)
-    ln_kappa = _log_kappa(cnt, P, h, q, ld)
+    b, B, det_p = info_gaussians(P, h)
+    ln_kappa = _log_kappa(cnt, h, q, ld, b, det_p)
     if variant == "UU":
         return ln_kappa + _log_u(prior)
     return ln_kappa + _log((integrator or _default_integrator())(prior, b + origin, B))
 
 
-def _log_kappa(cnt: np.ndarray, P: np.ndarray, h: np.ndarray, q: np.ndarray, ld: np.ndarray) -> np.ndarray:
-    """ln κ_C of the Gaussian product: −(m−1) ln 2π − ½ Σ ln det V + ½ ln det B − ½(Σ zᵀV⁻¹z − hᵀBh)."""
-    hb = np.einsum("ni,ni->n", h, np.linalg.solve(P, h[..., None])[..., 0])
-    return -(cnt - 1) * _LOG_2PI - 0.5 * ld - 0.5 * np.linalg.slogdet(P)[1] - 0.5 * (q - hb)
+def _log_kappa(cnt: np.ndarray, h: np.ndarray, q: np.ndarray, ld: np.ndarray, b: np.ndarray, det_p: np.ndarray) -> np.ndarray:
+    """ln κ_C of the Gaussian product: −(m−1) ln 2π − ½ Σ ln det V + ½ ln det B − ½(Σ zᵀV⁻¹z − hᵀBh),
+    with b = B h and det P = 1 / det B."""
+    hb = h[:, 0] * b[:, 0] + h[:, 1] * b[:, 1]
+    return -(cnt - 1) * _LOG_2PI - 0.5 * ld - 0.5 * np.log(det_p) - 0.5 * (q - hb)
 
 
 def _sums(labels: np.ndarray, rs: ReportStats, n: int) -> tuple[np.ndarray, ...]:
     cnt = np.bincount(labels, minlength=n)
-    P = np.zeros((n, 2, 2))
-    h = np.zeros((n, 2))
-    np.add.at(P, labels, rs.vinv)
-    np.add.at(h, labels, rs.hv)
+    P = np.stack([np.bincount(labels, rs.vinv[:, a, e], n) for a in range(2) for e in range(2)], axis=1).reshape(n, 2, 2)
+    h = np.stack([np.bincount(labels, rs.hv[:, a], n) for a in range(2)], axis=1)
     return cnt, P, h, np.bincount(labels, rs.qv, n), np.bincount(labels, rs.ldv, n)
 
 
@@ -215,7 +220,12 @@ class _Chain:
         for dst, src in zip((self.cnt, self.P, self.h, self.q, self.ld), _sums(self.labels, rs, n), strict=True):
             dst[:n] = src
         self.logL = np.zeros(K)
-        self.logL[:n] = self._ll(self.cnt[:n], self.P[:n], self.h[:n], self.q[:n], self.ld[:n], self._masks(np.arange(n)))
+        # a singleton's ln L is its report's (the same sums, so the same integral): integrate the rest
+        member = np.zeros(n, np.int64)
+        member[self.labels] = np.arange(K)
+        self.logL[:n] = single_ll[member]
+        mc = np.flatnonzero(self.cnt[:n] > 1)
+        self.logL[mc] = self._ll(self.cnt[mc], self.P[mc], self.h[mc], self.q[mc], self.ld[mc], self._masks(mc))
         self.cb, self.cB = np.zeros((K, 2)), np.tile(np.eye(2), (K, 1, 1))
         self.cb[:n], self.cB[:n] = self._gaussians(self.P[:n], self.h[:n])
         self.lam_v = lambda_max(rs.V)
@@ -243,9 +253,8 @@ class _Chain:
         return cluster_log_lik(self.o.prior, self.o.variant, cnt, P, h, q, ld, self.rs.origin, self.o.integrator)
 
     def _gaussians(self, P: np.ndarray, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        B = np.linalg.inv(P)
-        B = 0.5 * (B + B.transpose(0, 2, 1))
-        return np.einsum("nij,nj->ni", B, h), B
+        b, B, _ = info_gaussians(P, h)
+        return b, B
 
     # -- one Gibbs sweep
 
@@ -255,91 +264,86 @@ class _Chain:
         order = rng.permutation(self.K)
         u = rng.random(self.K)
         moved = 0
-        pending = order
+        deferred = order[:0]  # the scan still to do is deferred, then order[at:]
+        at = 0
         size = min(self.o.chunk, 2048)
-        while pending.size:
-            U = pending[:size]
+        while deferred.size or at < self.K:
+            fresh = order[at: at + max(size - deferred.size, 0)]
+            at += fresh.size
+            U = np.concatenate([deferred[:size], fresh])
             sel, m = self._round(U, beta, u)
             moved += m
-            pending = np.concatenate([U[~sel], pending[size:]])
+            deferred = np.concatenate([U[~sel], deferred[size:]])
             # about half of a round is selectable when its reports meet ~1 gated neighbour each:
             # round sizes follow that point (the chain does not depend on them)
             size = int(np.clip(2 * sel.sum(), 64, self.o.chunk))
             self.o.stats_["rounds"] += 1
         return moved
 
+    def _gated(self, zc: np.ndarray, V: np.ndarray, U: np.ndarray, own: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Gated clusters of the round's reports other than their own: CSR (ptr (m+1,), ids ascending
+        per report). From the cluster index, or (a gater given) by gating all live clusters with it."""
+        if self.o.given_gater is None:
+            return self.index.gated(zc, V, self.lam_v[U], own)
+        live = np.flatnonzero(self.cnt > 0)
+        c_idx, r_idx = self.o.gater(self.cb[live], self.cB[live], zc, V, threshold=self.o.gamma)
+        cl, pos = live[np.asarray(c_idx, np.int64)], np.asarray(r_idx, np.int64)
+        keep = cl != own[pos]
+        cl, pos = cl[keep], pos[keep]
+        order = np.lexsort((cl, pos))
+        return np.concatenate([[0], np.cumsum(np.bincount(pos, minlength=U.size))]), cl[order]
+
     def _round(self, U: np.ndarray, beta: float, u: np.ndarray) -> tuple[np.ndarray, int]:
         rs, gam = self.rs, self.o.gamma
         m = U.size
         zc = rs.z[U] - rs.origin
         V = rs.V[U]
-        live = self.index.candidates(zc, self.lam_v[U])  # a superset of the gated clusters
-        b_l, B_l = self.cb[live], self.cB[live]
-        c_idx, r_idx = self.o.gater(b_l, B_l, zc, V, threshold=gam)
-        cl, pos = live[np.asarray(c_idx, np.int64)], np.asarray(r_idx, np.int64)
         own = self.labels[U]
-        keep = cl != own[pos]
-        cl, pos = cl[keep], pos[keep]
-        order = np.lexsort((cl, pos))
-        cl, pos = cl[order], pos[order]
+        ptr, cl = self._gated(zc, V, U, own)
+        pos = np.repeat(np.arange(m), np.diff(ptr))
         # own cluster without the report: its Gaussian decides whether staying is a gated option
-        multi = self.cnt[own] > 1
-        mi = np.flatnonzero(multi)
-        Pm = self.P[own[mi]] - rs.vinv[U[mi]]
-        hm = self.h[own[mi]] - rs.hv[U[mi]]
-        bm, Bm = self._gaussians(Pm, hm)
-        r = zc[mi] - bm
-        own_gated = np.zeros(m, bool)
-        own_gated[mi] = np.einsum("ni,nij,nj->n", r, np.linalg.inv(Bm + V[mi]), r) <= gam
-        # touched clusters (own + gated) per position
-        t_pos = np.concatenate([np.arange(m), pos])
-        t_cl = np.concatenate([own, cl])
-        t_ord = np.argsort(t_pos, kind="stable")
-        t_ptr = np.concatenate([[0], np.cumsum(np.bincount(t_pos, minlength=m))])
+        multi, mi, bm, Bm, own_gated = own_without(U, own, self.cnt, self.P, self.h, rs.vinv, rs.hv, zc, V, gam)
         # possible new clusters of each report ({i}, own \ i, C ∪ i) and who they gate
         earlier = earlier_dependency(zc, V, self.lam_v[U], gam, mi, bm, Bm, pos, cl, self.P, self.h, U, rs.vinv, rs.hv)
         self.o.stamp += 1
-        sel = select_round(t_ptr, t_cl[t_ord], earlier, self.o.blocked(self.K), self.o.stamp)
+        sel = select_round(own, ptr, cl, earlier, self.o.blocked(self.K), self.o.stamp)
         # options of the selected reports: own (if gated and not alone) and gated clusters, by cluster id
         s_pos = np.flatnonzero(sel)
-        opt_sel = sel[pos]
-        o_pos = np.concatenate([pos[opt_sel], s_pos[multi[s_pos] & own_gated[s_pos]]])
-        o_cl = np.concatenate([cl[opt_sel], own[o_pos[opt_sel.sum():]]])
-        oo = np.lexsort((o_cl, o_pos))
-        o_pos, o_cl = o_pos[oo], o_cl[oo]
-        is_own = o_cl == own[o_pos]
+        o_ptr, o_cl, is_own, o_pos = round_options(sel, own, ptr, cl, own_gated)
         jo = U[o_pos]
         ext = ~is_own
         sm = s_pos[multi[s_pos]]  # selected reports that leave a non-empty cluster behind
         jm = U[sm]
-        cnt_all = np.concatenate([self.cnt[o_cl[ext]] + 1, self.cnt[own[sm]] - 1])
-        P_all = np.concatenate([self.P[o_cl[ext]] + rs.vinv[jo[ext]], self.P[own[sm]] - rs.vinv[jm]])
-        h_all = np.concatenate([self.h[o_cl[ext]] + rs.hv[jo[ext]], self.h[own[sm]] - rs.hv[jm]])
-        q_all = np.concatenate([self.q[o_cl[ext]] + rs.qv[jo[ext]], self.q[own[sm]] - rs.qv[jm]])
-        ld_all = np.concatenate([self.ld[o_cl[ext]] + rs.ldv[jo[ext]], self.ld[own[sm]] - rs.ldv[jm]])
+        e_cl, e_j, m_cl = o_cl[ext], jo[ext], own[sm]
+        cnt_all = np.concatenate([self.cnt[e_cl] + 1, self.cnt[m_cl] - 1])
+        P_all = np.concatenate([self.P[e_cl] + rs.vinv[e_j], self.P[m_cl] - rs.vinv[jm]])
+        h_all = np.concatenate([self.h[e_cl] + rs.hv[e_j], self.h[m_cl] - rs.hv[jm]])
+        q_all = np.concatenate([self.q[e_cl] + rs.qv[e_j], self.q[m_cl] - rs.qv[jm]])
+        ld_all = np.concatenate([self.ld[e_cl] + rs.ldv[e_j], self.ld[m_cl] - rs.ldv[jm]])
         masks = None
         if self.table is not None:
             cm = self._masks(np.arange(self.K))
             bit = np.left_shift(np.int64(1), np.arange(self.K, dtype=np.int64))
-            masks = np.concatenate([cm[o_cl[ext]] | bit[jo[ext]], cm[own[sm]] & ~bit[jm]])
+            masks = np.concatenate([cm[e_cl] | bit[e_j], cm[m_cl] & ~bit[jm]])
         ll = self._ll(cnt_all, P_all, h_all, q_all, ld_all, masks)
-        n_ext = int(ext.sum())
+        n_ext = e_cl.size
         own_minus = np.zeros(m)
         own_minus[sm] = ll[n_ext:]
         opt_ll = np.empty(o_cl.size)
         opt_ll[ext] = ll[:n_ext]
         opt_ll[is_own] = self.logL[o_cl[is_own]]
         opt_delta = np.where(is_own, opt_ll - own_minus[o_pos], opt_ll - self.logL[o_cl])
-        # CSR over the selected reports in scan order
-        rank = np.cumsum(sel) - 1
-        o_ptr = np.concatenate([[0], np.cumsum(np.bincount(rank[o_pos], minlength=s_pos.size))])
         kind, param = self.o.s_model.code
+        j_sel = U[s_pos]
+        before = own[s_pos]
         d_lp, moved = apply_moves(
-            U[s_pos], o_ptr, o_cl, opt_delta, opt_ll, own_minus[s_pos], self.single_ll, u, float(beta),
+            j_sel, o_ptr, o_cl, opt_delta, opt_ll, own_minus[s_pos], self.single_ll, u, float(beta),
             self.labels, self.cnt, self.P, self.h, self.q, self.ld, self.logL, self.free, self.istate,
             self.s_cache, kind, param, rs.vinv, rs.hv, rs.qv, rs.ldv)
         self.lp += d_lp
-        changed = np.unique(np.concatenate([own[s_pos], o_cl, self.labels[U[s_pos]]]))
+        after = self.labels[j_sel]
+        went = after != before  # only the reports that moved changed clusters
+        changed = np.unique(np.concatenate([before[went], after[went]]))
         self.index.remove(changed[self.cnt[changed] == 0])
         changed = changed[self.cnt[changed] > 0]
         self.cb[changed], self.cB[changed] = self._gaussians(self.P[changed], self.h[changed])
@@ -438,7 +442,11 @@ class BatchAssociator:
     state visited wins. Sample mode: ``burn_in`` sweeps then ``samples`` sweeps, one sample each.
     ``split_merge`` proposals per sweep with ``launch`` restricted-Gibbs launch scans. ``seed`` for a
     ``numpy.random.Generator``; ``progress`` shows tqdm over sweeps. ``table=True`` (K <= 20, tests)
-    precomputes ln L for all 2^K subsets in one integrate call.
+    precomputes ln L for all 2^K subsets in one integrate call. Rounds gate through the chain's cluster
+    index (:class:`~tracker.association.cluster_index.ClusterIndex`, the gater's exact test); a ``gater``
+    given instead gates each round against all live clusters (the same chain, slower; tests and
+    benchmarks); the gated report pairs of split–merge use ``gater`` (default
+    :func:`~tracker.gating.gate.gate_unchecked`).
     """
 
     def __init__(
@@ -465,6 +473,7 @@ class BatchAssociator:
         # rounds are small: one numba thread below 4096 rows, as in greedy
         self.integrator = one_thread_when_small(integrator or _default_integrator(), 1)
         self.gater = one_thread_when_small(gater or _default_gater(), 2)
+        self.given_gater = gater  # None: rounds gate through the chain's cluster index
         self.stamp = 0
         self._blocked = np.zeros(0, np.int64)
         self.stats_ = {"rounds": 0, "integrals": 0, "sweeps": 0, "split_merge_accepted": 0}

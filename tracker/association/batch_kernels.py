@@ -1,5 +1,6 @@
-"""Numba kernels of the batch associator (:mod:`tracker.association.batch`): round selection and the
-sequential application of precomputed collapsed-Gibbs moves.
+"""Numba kernels of the batch associator (:mod:`tracker.association.batch`): 2×2 information-form
+Gaussians, a round's own-cluster options, dependencies and selection, and the sequential application
+of precomputed collapsed-Gibbs moves.
 
 The cluster state lives in flat arrays indexed by cluster id (capacity K): ``cnt`` reports per cluster,
 the information sums ``P`` = Σ V⁻¹ (per m², stored as P00, P01, P11), ``h`` = Σ V⁻¹z (per m),
@@ -61,25 +62,63 @@ def choose(w: np.ndarray, beta: float, u: float) -> int:
 
 
 @njit(cache=True)
-def select_round(touched_ptr, touched_cl, earlier, blocked, stamp):
+def select_round(own, ptr, cl, earlier, blocked, stamp):
     """Reports of a round (positions 0..m-1 in scan order) whose move can be applied now with
-    sequential-scan semantics: none of its touched clusters (own and gated) is touched by an earlier
-    report of the round, and no earlier report's possible new clusters gate it or vice versa
-    (``earlier``, from :func:`earlier_dependency`). ``blocked[c] == stamp`` marks clusters touched
-    earlier in this round."""
-    m = touched_ptr.size - 1
+    sequential-scan semantics: none of its touched clusters (``own[p]`` and the gated ``cl[ptr[p]:ptr[p+1]]``)
+    is touched by an earlier report of the round, and no earlier report's possible new clusters gate
+    it or vice versa (``earlier``, from :func:`earlier_dependency`). ``blocked[c] == stamp`` marks
+    clusters touched earlier in this round."""
+    m = own.size
     sel = np.zeros(m, dtype=np.bool_)
     for p in range(m):
-        ok = not earlier[p]
+        ok = not earlier[p] and blocked[own[p]] != stamp
         if ok:
-            for e in range(touched_ptr[p], touched_ptr[p + 1]):
-                if blocked[touched_cl[e]] == stamp:
+            for e in range(ptr[p], ptr[p + 1]):
+                if blocked[cl[e]] == stamp:
                     ok = False
                     break
-        for e in range(touched_ptr[p], touched_ptr[p + 1]):
-            blocked[touched_cl[e]] = stamp
+        blocked[own[p]] = stamp
+        for e in range(ptr[p], ptr[p + 1]):
+            blocked[cl[e]] = stamp
         sel[p] = ok
     return sel
+
+
+@njit(cache=True)
+def round_options(sel, own, ptr, cl, own_gated):
+    """Options of the selected positions of a round, in scan order: the gated clusters
+    ``cl[ptr[p]:ptr[p+1]]`` (ascending ids, own cluster excluded) with the own cluster inserted at its
+    place when ``own_gated[p]``. Returns (CSR ``o_ptr`` over the selected, cluster ids, is-own flags,
+    round position per option)."""
+    n_sel = 0
+    n_opt = 0
+    for p in range(sel.size):
+        if sel[p]:
+            n_sel += 1
+            n_opt += ptr[p + 1] - ptr[p] + (1 if own_gated[p] else 0)
+    o_ptr = np.zeros(n_sel + 1, np.int64)
+    o_cl = np.empty(n_opt, np.int64)
+    o_own = np.zeros(n_opt, np.bool_)
+    o_pos = np.empty(n_opt, np.int64)
+    t = 0
+    k = 0
+    for p in range(sel.size):
+        if not sel[p]:
+            continue
+        pending = own_gated[p]
+        for e in range(ptr[p], ptr[p + 1]):
+            if pending and own[p] < cl[e]:
+                o_cl[k], o_own[k], o_pos[k] = own[p], True, p
+                k += 1
+                pending = False
+            o_cl[k], o_pos[k] = cl[e], p
+            k += 1
+        if pending:
+            o_cl[k], o_own[k], o_pos[k] = own[p], True, p
+            k += 1
+        t += 1
+        o_ptr[t] = k
+    return o_ptr, o_cl, o_own, o_pos
 
 
 @njit(cache=True)
@@ -172,6 +211,50 @@ def _info_gaussian(p00: float, p01: float, p11: float, h0: float, h1: float):
 
 
 @njit(cache=True)
+def info_gaussians(P, h):
+    """(b (n,2) m, B (n,2,2) m², det P (n,) per m⁴) of information sums P (n,2,2) per m², h (n,2) per m,
+    by :func:`_info_gaussian` (the off-diagonal of P taken as the mean of its two entries)."""
+    n = P.shape[0]
+    b = np.empty((n, 2))
+    B = np.empty((n, 2, 2))
+    det = np.empty(n)
+    for i in range(n):
+        p00, p01, p11 = P[i, 0, 0], 0.5 * (P[i, 0, 1] + P[i, 1, 0]), P[i, 1, 1]
+        b[i, 0], b[i, 1], B[i, 0, 0], B[i, 0, 1], B[i, 1, 1] = _info_gaussian(p00, p01, p11, h[i, 0], h[i, 1])
+        B[i, 1, 0] = B[i, 0, 1]
+        det[i] = p00 * p11 - p01 * p01
+    return b, B, det
+
+
+@njit(cache=True)
+def own_without(reps, own, cnt, P, h, vinv, hv, zc, V, gamma):
+    """Per round position p whose own cluster has other members (``multi``): the Gaussian (b, B) of
+    the own cluster without report ``reps[p]`` (:func:`info_gaussians` of P − V⁻¹, h − V⁻¹z) and
+    whether it gates the report (d² of z − b under B + V ≤ γ). Returns (multi (m,), positions of
+    multi, b, B (as in :func:`info_gaussians`), own_gated (m,))."""
+    m = reps.size
+    multi = np.zeros(m, np.bool_)
+    for p in range(m):
+        multi[p] = cnt[own[p]] > 1
+    mi = np.flatnonzero(multi)
+    Pm = np.empty((mi.size, 2, 2))
+    hm = np.empty((mi.size, 2))
+    for t in range(mi.size):
+        c, j = own[mi[t]], reps[mi[t]]
+        for a in range(2):
+            hm[t, a] = h[c, a] - hv[j, a]
+            for e in range(2):
+                Pm[t, a, e] = P[c, a, e] - vinv[j, a, e]
+    bm, Bm, _ = info_gaussians(Pm, hm)
+    own_gated = np.zeros(m, np.bool_)
+    for t in range(mi.size):
+        p = mi[t]
+        own_gated[p] = _d2(zc[p, 0] - bm[t, 0], zc[p, 1] - bm[t, 1], Bm[t, 0, 0] + V[p, 0, 0],
+                           Bm[t, 0, 1] + V[p, 0, 1], Bm[t, 1, 1] + V[p, 1, 1]) <= gamma
+    return multi, mi, bm, Bm, own_gated
+
+
+@njit(cache=True)
 def _mark(owner, bx, by, B00, B01, B11, zc, V, lam_v_max, gamma, lo, cell, nx, ny, start, members, earlier) -> None:
     """Mark the gate links of one possible new cluster (mean b, covariance B) of round position ``owner``
     with the round's reports q (d² of z_q − b under B + V_q ≤ γ): the later of the two has an earlier
@@ -228,17 +311,21 @@ def earlier_dependency(zc, V, lam_v, gamma, multi_pos, bm, Bm, pair_pos, pair_cl
     for q in range(m):
         members[fill[key[q]]] = q
         fill[key[q]] += 1
-    for a in range(m):
-        _mark(a, zc[a, 0], zc[a, 1], V[a, 0, 0], V[a, 0, 1], V[a, 1, 1], zc, V, lam_v_max, gamma, lo, cell,
-              nx, ny, start, members, earlier)
-    for t in range(multi_pos.size):
-        a = multi_pos[t]
-        _mark(a, bm[t, 0], bm[t, 1], Bm[t, 0, 0], Bm[t, 0, 1], Bm[t, 1, 1], zc, V, lam_v_max, gamma, lo, cell,
-              nx, ny, start, members, earlier)
-    for t in range(pair_pos.size):
-        a, c = pair_pos[t], pair_cl[t]
-        j = reps[a]
-        bx, by, B00, B01, B11 = _info_gaussian(P[c, 0, 0] + vinv[j, 0, 0], 0.5 * (P[c, 0, 1] + P[c, 1, 0] + vinv[j, 0, 1] + vinv[j, 1, 0]),
-                                               P[c, 1, 1] + vinv[j, 1, 1], h[c, 0] + hv[j, 0], h[c, 1] + hv[j, 1])
+    n_multi = multi_pos.size
+    for t in range(m + n_multi + pair_pos.size):
+        if t < m:
+            a = t
+            bx, by, B00, B01, B11 = zc[a, 0], zc[a, 1], V[a, 0, 0], V[a, 0, 1], V[a, 1, 1]
+        elif t < m + n_multi:
+            u = t - m
+            a = multi_pos[u]
+            bx, by, B00, B01, B11 = bm[u, 0], bm[u, 1], Bm[u, 0, 0], Bm[u, 0, 1], Bm[u, 1, 1]
+        else:
+            u = t - m - n_multi
+            a, c = pair_pos[u], pair_cl[u]
+            j = reps[a]
+            bx, by, B00, B01, B11 = _info_gaussian(
+                P[c, 0, 0] + vinv[j, 0, 0], 0.5 * (P[c, 0, 1] + P[c, 1, 0] + vinv[j, 0, 1] + vinv[j, 1, 0]),
+                P[c, 1, 1] + vinv[j, 1, 1], h[c, 0] + hv[j, 0], h[c, 1] + hv[j, 1])
         _mark(a, bx, by, B00, B01, B11, zc, V, lam_v_max, gamma, lo, cell, nx, ny, start, members, earlier)
     return earlier

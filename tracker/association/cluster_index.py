@@ -1,12 +1,12 @@
 """A persistent uniform grid over the batch chain's cluster posteriors (means b_D in m, relative to the
 chain's origin), updated with only the clusters a Gibbs round changed.
 
-It answers a coarse question: which clusters could gate a report? A pair gates when
-d² = rᵀ(B_D + V_i)⁻¹r ≤ γ, which implies |r|² ≤ γ λmax(B_D + V_i) ≤ γ (λmax(B_D) + λmax(V_i)).
-:meth:`ClusterIndex.candidates` returns every cluster that passes this Euclidean bound (a superset of
-the gated ones); the exact test stays with the gater (:func:`tracker.gating.gate.gate_unchecked`),
-so the gated pairs are the same as gating against all live clusters, at a cost that does not grow
-with the number of clusters.
+It answers which clusters gate a report. A pair gates when d² = rᵀ(B_D + V_i)⁻¹r ≤ γ, which implies
+|r|² ≤ γ λmax(B_D + V_i) ≤ γ (λmax(B_D) + λmax(V_i)). :meth:`ClusterIndex.gated` visits the cells
+within that Euclidean bound and applies the gater's own exact test
+(:func:`tracker.gating.exact.sym_d2_logdet`, the arithmetic of :func:`tracker.gating.gate.gate_unchecked`)
+in the same pass, so the gated pairs are those of gating against all live clusters, at a cost that
+does not grow with the number of clusters. Each report's pairs come out sorted by cluster id.
 
 A cluster sits in the cell of its mean, clamped to the grid (a matrix-weighted mean may leave the
 reports' bounding box; clamping is monotone, so the cell ranges of queries stay correct). Cells hold
@@ -19,6 +19,8 @@ import math
 
 import numpy as np
 from numba import njit
+
+from tracker.gating.exact import sym_d2_logdet
 
 _SLACK = 1e-6
 """Relative slack on the coarse radius: rounding must never drop a gated cluster."""
@@ -44,10 +46,9 @@ class ClusterIndex:
         self.prv = np.full(capacity, -1, np.int64)
         self.cell_of = np.full(capacity, -1, np.int64)
         self.mean = np.zeros((capacity, 2))
+        self.cov = np.zeros((capacity, 3))  # B00, B01, B11 (m²) for the exact test
         self.lam = np.zeros(capacity)
         self.lam_max = np.zeros(1)  # max λmax(B) ever inserted: a stale (larger) value is only slower
-        self.stamp = np.zeros(capacity, np.int64)
-        self.round = np.zeros(1, np.int64)
 
     @classmethod
     def for_reports(cls, zc: np.ndarray, lam_v: np.ndarray, capacity: int, gamma: float) -> ClusterIndex:
@@ -64,24 +65,23 @@ class ClusterIndex:
     def update(self, ids: np.ndarray, means: np.ndarray, covs: np.ndarray) -> None:
         """(Re)place clusters ``ids`` with posterior means (n,2) m and covariances (n,2,2) m²."""
         if ids.size:
+            ids = np.asarray(ids, np.int64)
+            self.cov[ids] = covs[:, [0, 0, 1], [0, 1, 1]]
             _place(self.head, self.nxt, self.prv, self.cell_of, self.mean, self.lam, self.lam_max,
-                   np.asarray(ids, np.int64), np.ascontiguousarray(means), lambda_max(covs),
-                   self.lo, self.cell, self.dims)
+                   ids, np.ascontiguousarray(means), lambda_max(covs), self.lo, self.cell, self.dims)
 
     def remove(self, ids: np.ndarray) -> None:
         """Take clusters ``ids`` out (they became empty)."""
         if ids.size:
             _remove(self.head, self.nxt, self.prv, self.cell_of, np.asarray(ids, np.int64))
 
-    def candidates(self, zc: np.ndarray, lam_v: np.ndarray) -> np.ndarray:
-        """Sorted ids of the clusters with |b_D − z_i|² ≤ γ (λmax(B_D) + λmax(V_i)) for some report i
-        (``zc`` (m,2) m, ``lam_v`` (m,) λmax(V_i) m²): a superset of the clusters that gate them."""
-        self.round[0] += 1
-        out = _candidates(self.head, self.nxt, self.mean, self.lam, self.lam_max[0], self.stamp, self.round[0],
-                          np.ascontiguousarray(zc), np.ascontiguousarray(lam_v), self.gamma, self.lo, self.cell,
-                          self.dims)
-        out.sort()
-        return out
+    def gated(self, zc: np.ndarray, V: np.ndarray, lam_v: np.ndarray, skip: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Gated pairs of reports (``zc`` (m,2) m, ``V`` (m,2,2) m², ``lam_v`` (m,) λmax(V_i) m²) with the
+        live clusters: d² of z_i − b_D under B_D + V_i ≤ γ, leaving out cluster ``skip[i]`` of report i.
+        Returns CSR ``ptr`` (m+1,) and cluster ids (ptr[-1],), each report's ids ascending."""
+        return _gated(self.head, self.nxt, self.mean, self.cov, self.lam, self.lam_max[0], np.ascontiguousarray(zc),
+                      np.ascontiguousarray(V), np.ascontiguousarray(lam_v), np.asarray(skip, np.int64), self.gamma,
+                      self.lo, self.cell, self.dims)
 
 
 @njit(cache=True)
@@ -135,11 +135,14 @@ def _place(head, nxt, prv, cell_of, mean, lam, lam_max, ids, means, lams, lo, ce
 
 
 @njit(cache=True)
-def _candidates(head, nxt, mean, lam, lam_max, stamp, rnd, zc, lam_v, gamma, lo, cell, dims):
-    out = np.empty(64, np.int64)
+def _gated(head, nxt, mean, cov, lam, lam_max, zc, V, lam_v, skip, gamma, lo, cell, dims):
+    m = zc.shape[0]
+    ptr = np.zeros(m + 1, np.int64)
+    out = np.empty(max(4 * m, 16), np.int64)
     n = 0
-    for i in range(zc.shape[0]):
+    for i in range(m):
         x, y = zc[i, 0], zc[i, 1]
+        v00, v01, v11 = V[i, 0, 0], V[i, 0, 1], V[i, 1, 1]
         reach = math.sqrt(gamma * (lam_max + lam_v[i])) * (1.0 + _SLACK)
         x0 = min(max(int(math.floor((x - reach - lo[0]) / cell)), 0), dims[0] - 1)
         x1 = min(max(int(math.floor((x + reach - lo[0]) / cell)), 0), dims[0] - 1)
@@ -149,10 +152,11 @@ def _candidates(head, nxt, mean, lam, lam_max, stamp, rnd, zc, lam_v, gamma, lo,
             for ix in range(x0, x1 + 1):
                 c = head[iy * dims[0] + ix]
                 while c >= 0:
-                    if stamp[c] != rnd:
-                        dx, dy = mean[c, 0] - x, mean[c, 1] - y
-                        if dx * dx + dy * dy <= gamma * (lam[c] + lam_v[i]) * (1.0 + _SLACK) + 1e-12:
-                            stamp[c] = rnd
+                    dx, dy = x - mean[c, 0], y - mean[c, 1]
+                    if c != skip[i] and dx * dx + dy * dy <= gamma * (lam[c] + lam_v[i]) * (1.0 + _SLACK) + 1e-12:
+                        d2, _ = sym_d2_logdet(cov[c, 0] + v00, cov[c, 1] + v01, 0.0, cov[c, 2] + v11, 0.0, 0.0,
+                                              dx, dy, 0.0, 2, False)
+                        if d2 <= gamma:
                             if n == out.size:
                                 grown = np.empty(2 * n, np.int64)
                                 grown[:n] = out
@@ -160,4 +164,12 @@ def _candidates(head, nxt, mean, lam, lam_max, stamp, rnd, zc, lam_v, gamma, lo,
                             out[n] = c
                             n += 1
                     c = nxt[c]
-    return out[:n]
+        for a in range(ptr[i] + 1, n):  # insertion sort: a report gates a few clusters
+            v = out[a]
+            b = a - 1
+            while b >= ptr[i] and out[b] > v:
+                out[b + 1] = out[b]
+                b -= 1
+            out[b + 1] = v
+        ptr[i + 1] = n
+    return ptr, out[:n]
