@@ -370,16 +370,24 @@ def _rule(rho, xs, ws):
 # --- kernels ----------------------------------------------------------------------------------
 
 
-NO_SLOTS = np.zeros(0, np.int32)
-"""The ``slots`` of a whole pyramid's levels: each level's blocks lie in order at its offset."""
+BLOCK = (TILE + 3) ** 2
+"""Floats per stored block (a TILE x TILE node block with its apron)."""
+
+
+def whole_slots(p: Packed) -> tuple[np.ndarray, np.ndarray]:
+    """The block table and per-level offsets into it of a whole pyramid's levels: block b of level k is
+    block ``offset[k] // BLOCK + b`` of ``coef``. The table is uint32, which never marks a block
+    missing, so numba compiles :func:`_spline_at` for it without the lazy pyramid's test (a run-time
+    test for which kind of table was passed made the whole pyramid's kernel ~20 % slower)."""
+    return np.arange(p.coef.size // BLOCK, dtype=np.uint32), p.offset // BLOCK
 
 
 @nb.njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
 def _spline_at(coef, slots, off, nu, nv, u0, v0, h, u, v):
-    """The cubic B-spline of one level at pixel point (u, v), 0 off its (nv, nu) lattice. Its blocks
-    (see :func:`_tile`) lie in order from ``coef[off]`` when ``slots`` is empty (a whole pyramid), else
-    block b is at slot ``slots[off + b]`` of (TILE + 3)² floats, and NaN marks a block that is not
-    there (:mod:`tracker.integrate.lazy` builds it and asks again)."""
+    """The cubic B-spline of one level at pixel point (u, v), 0 off its (nv, nu) lattice. Block b of the
+    level (see :func:`_tile`) is block ``slots[off + b]`` of ``coef`` (BLOCK floats each): a whole
+    pyramid's uint32 table (:func:`whole_slots`), or a lazy pyramid's int32 one, where -1 marks a block
+    that is not there and gives NaN (:mod:`tracker.integrate.lazy` builds it and asks again)."""
     x = (u - u0) / h
     y = (v - v0) / h
     i = int(np.floor(x))
@@ -401,14 +409,10 @@ def _spline_at(coef, slots, off, nu, nv, u0, v0, h, u, v):
     # The footprint's rows j-1..j+2 and columns i-1..i+2 all lie in the block of (j, i) (see _tile).
     width = TILE + 3
     block = (j // TILE) * ((nu + TILE - 1) // TILE) + i // TILE
-    if slots.shape[0] == 0:
-        p = off + block * width * width
-    else:
-        slot = slots[off + block]
-        if slot < 0:
-            return np.nan
-        p = slot * (width * width)
-    p += (j % TILE) * width + i % TILE
+    slot = slots[off + block]
+    if slot < 0:  # constant False for a uint32 table: compiled away for a whole pyramid
+        return np.nan
+    p = slot * (width * width) + (j % TILE) * width + i % TILE
     r0 = wx0 * coef[p] + wx1 * coef[p + 1] + wx2 * coef[p + 2] + wx3 * coef[p + 3]
     p += width
     r1 = wx0 * coef[p] + wx1 * coef[p + 1] + wx2 * coef[p + 2] + wx3 * coef[p + 3]
@@ -422,7 +426,7 @@ def _spline_at(coef, slots, off, nu, nv, u0, v0, h, u, v):
 @nb.njit(cache=True, error_model="numpy", fastmath=FAST)
 def _bspline(coef, off, nu, nv, u0, v0, h, u, v):
     """:func:`_spline_at` of a whole pyramid's level stored in blocks at ``coef[off:]``."""
-    return _spline_at(coef, NO_SLOTS, off, nu, nv, u0, v0, h, u, v)
+    return _spline_at(coef, np.arange(coef.size // BLOCK, dtype=np.uint32), off // BLOCK, nu, nv, u0, v0, h, u, v)
 
 
 PHI_STEP = 1.0 / 256.0
@@ -495,7 +499,7 @@ def _window(values, tab, u, v, s, wu):
 @nb.njit(cache=True, error_model="numpy", fastmath=FAST)
 def _one(values, tab, coef, slots, scale, step, u0, v0, nu, nv, offset, uc, vc, cuu, cuv, cvv, xs1, ws1, xs2, ws2, wu):
     """∫ G r for one Gaussian in pixel units (mean (uc, vc), covariance [[cuu, cuv], [cuv, cvv]] cells²);
-    ``slots`` empty for a whole pyramid's levels, else where each block is (:func:`_bspline_slots`).
+    ``slots`` and ``offset``: where each level's blocks are (see :func:`_spline_at`).
 
     Returns (value, look-ups), look-ups 0 when the Gaussian is too eccentric for the rules."""
     m = 0.5 * (cuu + cvv)
@@ -632,7 +636,8 @@ def integrate_pixels(
     p = pyr.levels(float(smin.max(initial=0.0)))
     out = np.empty(n)
     counts = np.empty(n, dtype=np.int64)
-    args = (pyr.field, PHI_TABLE, p.coef, NO_SLOTS, p.scale, p.step, p.u0, p.v0, p.nu, p.nv, p.offset)
+    slots, offset = whole_slots(p)
+    args = (pyr.field, PHI_TABLE, p.coef, slots, p.scale, p.step, p.u0, p.v0, p.nu, p.nv, offset)
     _kernel(*args, uc, vc, cuu, cuv, cvv, np.argsort(keys), out, counts, nb.get_num_threads())
     return out, counts
 
