@@ -52,7 +52,10 @@ GH_SPAN = 5.6
 """Largest |node| of the rules (Gauss-Hermite up to 12 points: 5.50; trapezoid: TRAP_SPAN = 5), in
 leftover σ: bounds how far from its centre a Gaussian's look-ups fall."""
 _T = ss.TILE
-_BLOCK = (_T + 3) ** 2
+_BLOCK = ss.BLOCK
+MISSING = 0
+"""The pool's slot that the block tables point at for a block not built (or evicted): all NaN, so a
+look-up there gives NaN (the kernel needs no test; the caller builds the tiles and asks again)."""
 
 
 class CellSource(Protocol):
@@ -85,13 +88,14 @@ class LazyPyramid:
         self.field = field
         self.blocks = int(blocks)
         self.side = self.blocks * _T
-        n_slots = max(int(cache_bytes) // (4 * _BLOCK), 4 * self.blocks**2)
-        self.pool = np.zeros((n_slots, _BLOCK), np.float32)
-        self._free = list(range(n_slots - 1, -1, -1))
+        self.n_slots = max(int(cache_bytes) // (4 * _BLOCK) - 1, 4 * self.blocks**2)  # besides MISSING
+        self.pool = np.zeros((self.n_slots + 1, _BLOCK), np.float32)
+        self.pool[MISSING] = np.nan
+        self._free = [s for s in range(self.n_slots, -1, -1) if s != MISSING]
         self._tiles: OrderedDict[tuple[int, int, int], np.ndarray] = OrderedDict()
         self._pinned: set[tuple[int, int, int]] = set()
         self._geometry: list[tuple[float, float, float, int, int, int, int]] = []  # s, h, origin, nu, nv, nbu, table offset
-        self.slots = np.full(0, -1, np.int32)
+        self.slots = np.full(0, MISSING, np.int32)
         self.tiles_built = 0
         self._lock = threading.RLock()
 
@@ -105,7 +109,7 @@ class LazyPyramid:
             s, h, origin, nu, nv = ss.lattice(len(self._geometry), self.shape)
             nbu, nbv = -(-nu // ss.TILE), -(-nv // ss.TILE)
             self._geometry.append((s, h, origin, nu, nv, nbu, size))
-            tables.append(np.full(nbu * nbv, -1, np.int32))
+            tables.append(np.full(nbu * nbv, MISSING, np.int32))
             size += nbu * nbv
         if len(tables) > 1:
             self.slots = np.concatenate(tables)
@@ -141,7 +145,7 @@ class LazyPyramid:
         # would evict the tiles below it that the next build reads (and rebuild them, again and again).
         sizes = [(v1 - v0 + 1) * (u1 - u0 + 1) for _, v0, v1, u0, u1 in plan]
         need = max(a + b for a, b in zip(sizes, [*sizes[1:], 0], strict=True)) + len(self._pinned)
-        if need * self.blocks**2 > self.pool.shape[0]:
+        if need * self.blocks**2 > self.n_slots:
             raise MemoryError(f"LazyPyramid: a cache of {self.pool.nbytes / 2**20:.0f} MiB cannot hold the tiles one batch needs "
                               f"({need} tiles of {self.blocks**2} blocks at once)")
         threads = nb.get_num_threads()
@@ -210,7 +214,7 @@ class LazyPyramid:
                 continue
             table = self._tiles.pop(key)
             self._free.extend(self.slots[table].tolist())
-            self.slots[table] = -1
+            self.slots[table] = MISSING
             if len(self._free) >= n:
                 return
         raise MemoryError(f"LazyPyramid: a cache of {self.pool.nbytes / 2**20:.0f} MiB cannot hold the tiles one batch needs")
@@ -311,7 +315,7 @@ class LazyPyramid:
     def _run(self, field, todo, uc, vc, cuu, cuv, cvv, widen, out, counts) -> None:
         """Integrals ``todo`` (in kernel order), in chunks whose tiles fit half the pool at once."""
         per_tile = self.blocks * self.blocks
-        room = self.pool.shape[0] // (2 * per_tile)
+        room = self.n_slots // (2 * per_tile)
         stack = [todo]
         while stack:
             chunk = stack.pop()

@@ -55,6 +55,8 @@ nodes' 4 x 4 B-spline footprints reach (35 x 35 float32, 4.9 KiB), so a look-up 
 140 bytes apart in one block instead of four rows a lattice-width apart: 1.3x faster at σ = 3
 cells on a 2,000² prior (lattices larger than the cache), 20 % more memory; a power of two keeps
 the block arithmetic to shifts."""
+BLOCK = (TILE + 3) ** 2
+"""Floats per stored block (a TILE x TILE node block with its apron)."""
 MAX_CELLS = 25_000_000
 """Largest grid (cells) :func:`tracker.integrate.integrate` builds a whole pyramid for (~3.5 GiB peak
 at this size, see :func:`pyramid_bytes`); larger priors get a :class:`tracker.integrate.lazy.LazyPyramid`
@@ -105,6 +107,13 @@ class Pyramid:
         self.field = np.ascontiguousarray(field, dtype=np.float64)
         self.packed = Packed(*(np.zeros(0) for _ in range(4)), *(np.zeros(k, np.int64) for k in (0, 0, 1)), np.zeros(0, np.float32))
         self._lock = threading.Lock()
+        self._table = np.zeros(0, np.uint32)
+
+    def slots(self, p: Packed) -> tuple[np.ndarray, np.ndarray]:
+        """The block table and per-level offsets into it of the levels ``p``: block b of level k is block
+        ``offset[k] // BLOCK + b`` of ``coef`` (the kernel reads a whole pyramid through the same kind of
+        table as a lazy one, so both give the same numbers; see :func:`_spline_at`)."""
+        return self._table, p.offset // BLOCK
 
     def levels(self, top_scale: float) -> Packed:
         """The levels up to the first with s_k >= ``top_scale`` cells (at least level 0), built if missing.
@@ -147,6 +156,7 @@ class Pyramid:
                 np.append(p.offset, p.offset[-1] + sizes).astype(np.int64),
                 np.concatenate([p.coef, *tiled]),
             )
+            self._table = np.arange(self.packed.coef.size // BLOCK, dtype=np.int32)  # grows with the levels
             return self.packed
 
 
@@ -370,16 +380,21 @@ def _rule(rho, xs, ws):
 # --- kernels ----------------------------------------------------------------------------------
 
 
-NO_SLOTS = np.zeros(0, np.int32)
-"""The ``slots`` of a whole pyramid's levels: each level's blocks lie in order at its offset."""
 
 
 @nb.njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
 def _spline_at(coef, slots, off, nu, nv, u0, v0, h, u, v):
-    """The cubic B-spline of one level at pixel point (u, v), 0 off its (nv, nu) lattice. Its blocks
-    (see :func:`_tile`) lie in order from ``coef[off]`` when ``slots`` is empty (a whole pyramid), else
-    block b is at slot ``slots[off + b]`` of (TILE + 3)² floats, and NaN marks a block that is not
-    there (:mod:`tracker.integrate.lazy` builds it and asks again)."""
+    """The cubic B-spline of one level at pixel point (u, v), 0 off its (nv, nu) lattice. Block b of the
+    level (see :func:`_tile`) is block ``slots[off + b]`` of ``coef`` (BLOCK floats each): a whole
+    pyramid's identity table (:meth:`Pyramid.slots`) or a lazy pyramid's, whose blocks not built point
+    at an all-NaN block (:data:`tracker.integrate.lazy.MISSING`), so the result is NaN there and the
+    lazy pyramid builds them and asks again.
+
+    One access path for both, without a test: a run-time test for which kind of pyramid it reads
+    cost the whole pyramid's kernel 12 % of its CPU time, and the test for a missing block ~6 %. A
+    separately compiled specialisation for each kind (numba types) would round differently from the
+    other in the last bit, depending on whether numba compiled it in the process or loaded it from
+    its cache, so the lazy pyramid's integrals would no longer equal the whole one's bit for bit."""
     x = (u - u0) / h
     y = (v - v0) / h
     i = int(np.floor(x))
@@ -401,14 +416,7 @@ def _spline_at(coef, slots, off, nu, nv, u0, v0, h, u, v):
     # The footprint's rows j-1..j+2 and columns i-1..i+2 all lie in the block of (j, i) (see _tile).
     width = TILE + 3
     block = (j // TILE) * ((nu + TILE - 1) // TILE) + i // TILE
-    if slots.shape[0] == 0:
-        p = off + block * width * width
-    else:
-        slot = slots[off + block]
-        if slot < 0:
-            return np.nan
-        p = slot * (width * width)
-    p += (j % TILE) * width + i % TILE
+    p = slots[off + block] * (width * width) + (j % TILE) * width + i % TILE
     r0 = wx0 * coef[p] + wx1 * coef[p + 1] + wx2 * coef[p + 2] + wx3 * coef[p + 3]
     p += width
     r1 = wx0 * coef[p] + wx1 * coef[p + 1] + wx2 * coef[p + 2] + wx3 * coef[p + 3]
@@ -422,7 +430,7 @@ def _spline_at(coef, slots, off, nu, nv, u0, v0, h, u, v):
 @nb.njit(cache=True, error_model="numpy", fastmath=FAST)
 def _bspline(coef, off, nu, nv, u0, v0, h, u, v):
     """:func:`_spline_at` of a whole pyramid's level stored in blocks at ``coef[off:]``."""
-    return _spline_at(coef, NO_SLOTS, off, nu, nv, u0, v0, h, u, v)
+    return _spline_at(coef, np.arange(coef.size // BLOCK, dtype=np.int32), off // BLOCK, nu, nv, u0, v0, h, u, v)
 
 
 PHI_STEP = 1.0 / 256.0
@@ -495,7 +503,7 @@ def _window(values, tab, u, v, s, wu):
 @nb.njit(cache=True, error_model="numpy", fastmath=FAST)
 def _one(values, tab, coef, slots, scale, step, u0, v0, nu, nv, offset, uc, vc, cuu, cuv, cvv, xs1, ws1, xs2, ws2, wu):
     """∫ G r for one Gaussian in pixel units (mean (uc, vc), covariance [[cuu, cuv], [cuv, cvv]] cells²);
-    ``slots`` empty for a whole pyramid's levels, else where each block is (:func:`_bspline_slots`).
+    ``slots`` and ``offset``: where each level's blocks are (see :func:`_spline_at`).
 
     Returns (value, look-ups), look-ups 0 when the Gaussian is too eccentric for the rules."""
     m = 0.5 * (cuu + cvv)
@@ -632,7 +640,8 @@ def integrate_pixels(
     p = pyr.levels(float(smin.max(initial=0.0)))
     out = np.empty(n)
     counts = np.empty(n, dtype=np.int64)
-    args = (pyr.field, PHI_TABLE, p.coef, NO_SLOTS, p.scale, p.step, p.u0, p.v0, p.nu, p.nv, p.offset)
+    slots, offset = pyr.slots(p)
+    args = (pyr.field, PHI_TABLE, p.coef, slots, p.scale, p.step, p.u0, p.v0, p.nu, p.nv, offset)
     _kernel(*args, uc, vc, cuu, cuv, cvv, np.argsort(keys), out, counts, nb.get_num_threads())
     return out, counts
 

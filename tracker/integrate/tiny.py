@@ -160,6 +160,8 @@ def few_cell_integrals(field, uc, vc, cuu, cuv, cvv):
             for a in range(i1 - i0 + 1):
                 value = _cell(field, i0 + a, j0 + b)
                 if value != 0.0:
-                    total += value * (corners[b + 1, a + 1] - corners[b, a + 1] - corners[b + 1, a] + corners[b, a])
+                    # A cell's mass is >= 0; the four-corner difference can round to -1e-27 far in a tail.
+                    mass = corners[b + 1, a + 1] - corners[b, a + 1] - corners[b + 1, a] + corners[b, a]
+                    total += value * max(mass, 0.0)
         out[n] = total
     return out

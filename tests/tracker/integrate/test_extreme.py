@@ -1,10 +1,11 @@
 """Extreme covariances (issue 13, class 1): every scale 1e-300 … 1e12 m² and eccentricity 1 … 1e16 is
-integrated in bounded time and memory by both methods, or refused by name past MAX_CONDITION.
+integrated in bounded memory, without hanging, by both methods, or refused by name past MAX_CONDITION.
 
 Oracles: the closed-form limits (A → 0: the cells' values weighted by their masses, scipy's bivariate
 normal CDF; A → ∞: 1/(2π√det A) times the prior's total mass of 1), the dense reference where it is
 affordable, and 1/4 + arcsin(ρ)/(2π) for orthants at a corner. The sweep runs in a subprocess under
 RLIMIT_AS and a timeout, so a regression that allocates gigabytes or hangs fails instead of killing the suite.
+How long one such integral takes is a benchmark row (bench/bench_terrace.py, ``extreme``), not a test.
 """
 
 from __future__ import annotations
@@ -76,8 +77,15 @@ def test_condition_number_past_the_limit_is_a_named_error() -> None:
         integrate(ROUGH, mean, np.array([[[a, a * (1 - 1e-15)], [a * (1 - 1e-15), a]]]))
 
 
+@pytest.mark.parametrize("method", METHODS)
+def test_a_few_cell_gaussian_off_the_grid_is_not_negative(method) -> None:
+    """Found by the sweep: 3 cells off the grid, the cells' four-corner masses rounded to -4e-27."""
+    mean = np.array([[X0, Y0 - 0.03125 * GRID.height * CELL]])
+    assert integrate(ROUGH, mean, cov_of(10.0**2.5, 100.0, 2.5)[None], method=method)[0] >= 0.0
+
+
 SWEEP = """
-import json, resource, sys, time
+import json, resource, sys
 resource.setrlimit(resource.RLIMIT_AS, (4 * 2**30, 4 * 2**30))
 import numpy as np
 from hypothesis import given, settings, strategies as st
@@ -85,7 +93,7 @@ from tests.tracker.integrate.test_extreme import CELL, GRID, ROUGH, X0, Y0, cov_
 from tracker.integrate import integrate, reference_integrate
 from tracker.integrate.terraces import pixel_gaussians
 from tracker.types.reports import MAX_CONDITION
-worst = {"time": 0.0, "err": 0.0, "cases": 0}
+worst = {"err": 0.0, "cases": 0}
 
 @settings(max_examples=int(sys.argv[1]), deadline=None, database=None)
 # Half the draws in the reference's range (σ 0.3-30 cells, up to 1e4:1), so both oracles are used.
@@ -96,13 +104,11 @@ def sweep(lvar, lecc, angle, fu, fv, method):
     cov = cov_of(var, ecc, angle)[None]
     mean = np.array([[X0 + fu * GRID.width * CELL, Y0 + fv * GRID.height * CELL]])
     eig = np.linalg.eigvalsh(cov[0] / var)
-    t = time.perf_counter()
     try:
         got = integrate(ROUGH, mean, cov, method=method)[0]
     except ValueError as e:
         assert "ill-conditioned" in str(e) and eig[1] > 0.5e12 * eig[0], (str(e), eig)
         return
-    worst["time"] = max(worst["time"], time.perf_counter() - t)
     assert eig[1] < 2e12 * max(eig[0], 0.0) and np.isfinite(got) and got >= 0.0, (got, eig)
     sig_min = np.sqrt(var * eig[0]) / CELL  # cells
     sig_max = np.sqrt(var) / CELL
@@ -117,8 +123,6 @@ def sweep(lvar, lecc, angle, fu, fv, method):
             assert err <= 0.01, (got, want)
     worst["cases"] += 1
 
-for m in ("scalespace", "terraces"):  # compile (or load the cache) before the clock runs
-    integrate(ROUGH, np.array([[X0 + 100.0, Y0 + 100.0]]), np.eye(2)[None] * 400.0, method=m)
 sweep()
 print(json.dumps(worst))
 """
@@ -129,7 +133,4 @@ def test_sweep_scale_and_eccentricity_bounded_in_a_subprocess() -> None:
     proc = subprocess.run([sys.executable, "-c", SWEEP, "100"], capture_output=True, text=True, timeout=240, env=env)
     assert proc.returncode == 0, proc.stderr[-3000:]
     worst = json.loads(proc.stdout.splitlines()[-1])
-    # seconds for one Gaussian at any scale or eccentricity; the slowest (~1-3 s) are a scale-space call that
-    # first builds the pyramid levels up to its spread (once per prior), one integral is milliseconds
-    assert worst["time"] < 5.0, worst
     assert worst["cases"] >= 60 and worst["err"] > 0.0, worst  # both oracles were reached

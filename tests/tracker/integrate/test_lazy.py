@@ -51,8 +51,9 @@ def _whole(field: np.ndarray, px) -> tuple[np.ndarray, np.ndarray]:
     scalespace._order_keys(*px, *field.shape, scalespace.ORDER_TILE, smin, keys)
     p = pyr.levels(float(smin.max()))
     out, counts = np.empty(n), np.empty(n, np.int64)
-    scalespace._kernel(pyr.field, scalespace.PHI_TABLE, p.coef, scalespace.NO_SLOTS, p.scale, p.step, p.u0, p.v0,
-                       p.nu, p.nv, p.offset, *px, np.argsort(keys), out, counts, 1)
+    slots, offset = pyr.slots(p)
+    scalespace._kernel(pyr.field, scalespace.PHI_TABLE, p.coef, slots, p.scale, p.step, p.u0, p.v0,
+                       p.nu, p.nv, offset, *px, np.argsort(keys), out, counts, 1)
     return out, counts
 
 
