@@ -33,6 +33,7 @@ from sklearn.base import BaseEstimator, clone
 from sklearn.utils.validation import check_is_fitted
 from threadpoolctl import threadpool_limits
 
+from pipeline.build.region import calibrate
 from pipeline.config.learn import FormSpec
 from pipeline.features.stack import Feature, FeatureStack
 from pipeline.learn.forms import BASIS_FORMS, basis, difference_penalty, from_scale, to_scale
@@ -462,7 +463,7 @@ class PriorEstimator(BaseEstimator):
         for f in folds:
             train = used.subset(fold != f)
             test = fold == f
-            res = self._solve(cells, train, params)
+            res = self._solve(cells, train, params, self.theta_ if self.method == "ml" else None)  # warm start: the full fit
             x = np.concatenate([r.x for r in res])
             obj = Objective(cells, train, params, list(range(len(params))), self.penalty_sd, self.smooth_sd)
             lr_f = np.zeros(int(test.sum()))
@@ -582,12 +583,12 @@ class PriorEstimator(BaseEstimator):
             }
         }
         if self.temper_ != 1.0:
-            meta["learned"]["tempering"] = (f"p proportional to r^{self.temper_:.4g} (r: these tables); not representable in "
-                                            "them (the estimator's prior_ and --hybrid-prior apply it)")
+            meta["learned"]["tempering"] = (f"p proportional to r^{self.temper_:.4g} (r: these tables); "
+                                            "build --model applies it (temper_exponent)")
         if self.defensive_:
             meta["learned"]["defensive_mixture"] = (
                 f"p = (1 - {self.defensive_:.4g}) * p_model + {self.defensive_:.4g} * uniform over the support; "
-                "not representable in these tables (the estimator's prior_ and --hybrid-prior apply it)")
+                "build --model applies it (defensive_epsilon)")
         forms = {t.feature: t.form + (f" in {t.scale}, {t.n_knots} knots" if t.form in ("increasing", "decreasing", "spline") else "")
                  + (f", lambda {t.lam:g}" if t.form == "spline" else "") for t in self.terms_ if t.form in BASIS_FORMS}
         if forms:
@@ -612,13 +613,8 @@ class PriorEstimator(BaseEstimator):
             p = self.likelihoods_[SPATIAL]
             logr = kde_logr(self.stack_[SPATIAL].values, p["gamma"], p["alpha"])
             r *= np.exp(logr - logr.max())
-        if self.temper_ != 1.0:
-            pos = r > 0
-            r = np.where(pos, np.exp(self.temper_ * (np.log(np.where(pos, r, 1.0)) - np.log(r.max()))), 0.0)
-        if self.defensive_ > 0:
-            support = r > 0
-            r = (1.0 - self.defensive_) * r / r.sum() + self.defensive_ * support / support.sum()
-        return TerrainPrior.from_array(r, self.stack_.grid, self.model_.to_dict())
+        # τ and ε as `build --model` applies them to the written tables (one formula)
+        return TerrainPrior.from_array(calibrate(r, self.temper_, self.defensive_), self.stack_.grid, self.model_.to_dict())
 
     def score_samples(self, X: np.ndarray) -> np.ndarray:
         """log p(x) per point of X (N, 2) (metres; log of a density per m²); −inf off the grid or on an
