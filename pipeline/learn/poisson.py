@@ -488,9 +488,13 @@ def _newton(obj: Objective, x0: np.ndarray, lo: np.ndarray, hi: np.ndarray, ftol
     return optimize.OptimizeResult(x=x, fun=f, success=False, message="max_iter reached", nit=max_iter)
 
 
-def fit(obj: Objective, x0: np.ndarray | None = None, ftol: float = 1e-13) -> FitResult:
-    """Minimise −(ℓ − penalty) with L-BFGS-B from ``x0`` (default: the terms' starts, with a search
-    for the road and KDE terms) to relative tolerance ``ftol``; covariance = inverse observed information."""
+def fit(obj: Objective, x0: np.ndarray | None = None, ftol: float = 1e-13, solver: str = "auto") -> FitResult:
+    """Minimise −(ℓ − penalty) from ``x0`` (default: the terms' starts, with a search for the road and
+    KDE terms) to relative tolerance ``ftol``: projected Newton (:func:`_newton`) when every term is
+    linear in θ and ``solver="auto"``, else (or when Newton stalls, or ``solver="lbfgsb"``) L-BFGS-B;
+    covariance = inverse observed information."""
+    if solver not in ("auto", "lbfgsb"):
+        raise ValueError(f"solver must be 'auto' or 'lbfgsb', got {solver!r}")
     if obj.n == 0:
         raise ValueError("no points left to fit (all off the grid or on structural zeros?)")
     x0 = _start_nonlinear(obj, obj.x0) if x0 is None else np.clip(x0, *np.array(
@@ -501,7 +505,7 @@ def fit(obj: Objective, x0: np.ndarray | None = None, ftol: float = 1e-13) -> Fi
     hi = np.array([b[1] if b[1] is not None else np.inf for b in obj.bounds])
     # one BLAS thread: the small dense products are slower threaded (x9 under a loaded machine)
     with threadpool_limits(limits=1, user_api="blas"):
-        res = _newton(obj, x0, lo, hi, ftol) if obj.linear else None
+        res = _newton(obj, x0, lo, hi, ftol) if obj.linear and solver == "auto" else None
         if res is None or not res.success:  # the road form (not linear in θ), or Newton stalled: L-BFGS-B
             res = optimize.minimize(obj, x0 if res is None else res.x, jac=True, method="L-BFGS-B", bounds=obj.bounds,
                                     options={"maxiter": 2000, "ftol": ftol, "gtol": 1e-9})

@@ -82,3 +82,25 @@ def test_newton_reaches_the_lbfgsb_optimum_and_respects_the_bounds(fitted) -> No
     assert np.all(res.x >= lo)
     assert res.at_bound.any()  # some hinge weights sit on 0: the projection is exercised
     assert res.n_iter < 60
+
+
+def test_calibration_gradient_matches_central_differences() -> None:
+    """The analytic (ε, τ) gradient of the cross-fitted mixture likelihood, against differences."""
+    from pipeline.learn.estimator import calibration_nll
+
+    rng = np.random.default_rng(4)
+    n, m = 300, 400
+    fold = rng.integers(0, 3, n)
+    per_fold = [(fold == f, rng.normal(0, 2, m), np.log(rng.uniform(100, 400, m))) for f in range(3)]
+    lr = rng.normal(0, 2, n)
+    w = rng.uniform(0.5, 2, n)
+    w /= w.sum()
+    log_u = -np.log(per_fold[0][2].size * 250.0)
+    for eps, tau in ((0.05, 0.7), (0.3, 1.3), (0.0, 1.0)):
+        _, g = calibration_nll(eps, tau, per_fold, lr, log_u, w)
+        h = 1e-6
+        fd_tau = (calibration_nll(eps, tau + h, per_fold, lr, log_u, w)[0] - calibration_nll(eps, tau - h, per_fold, lr, log_u, w)[0]) / (2 * h)
+        e_hi, e_lo = eps + h, max(eps - h, 0.0)
+        fd_eps = (calibration_nll(e_hi, tau, per_fold, lr, log_u, w)[0] - calibration_nll(e_lo, tau, per_fold, lr, log_u, w)[0]) / (e_hi - e_lo)
+        assert g[1] == pytest.approx(fd_tau, rel=1e-5, abs=1e-8)
+        assert g[0] == pytest.approx(fd_eps, rel=1e-3 if eps == 0 else 1e-5, abs=1e-7)
