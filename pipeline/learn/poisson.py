@@ -339,32 +339,40 @@ class Objective:
         return 0.5 * (h + h.T)
 
 
+@nb.njit(cache=True, inline="always")
+def _slot(i, t, lut_off):
+    """Flat look-up slot of level index ``i`` of term ``t`` (no data, i = −1: the term's last slot)."""
+    return lut_off[t] + i if i >= 0 else lut_off[t + 1] - 1
+
+
 @nb.njit(cache=True)
-def _cell_pass(index, area, luts, lut_off):
-    """log Z = log Σ_c A_c exp(Σ_t lut_t[index_ct]) and each level's share of Z (flat, per term
-    at ``lut_off``; no data is each term's last slot, picked by index −1)."""
+def _weights(index, area, luts, lut_off):
+    """A_c·exp(log r_c − top) per combination c (log r_c = Σ_t lut_t[index_ct]), their sum and top = max_c log r_c."""
     m, n_terms = index.shape
-    lr = np.empty(m)
+    w = np.empty(m)
     top = -np.inf
     for c in range(m):
         s = 0.0
         for t in range(n_terms):
-            i = index[c, t]
-            s += luts[lut_off[t] + i] if i >= 0 else luts[lut_off[t + 1] - 1]
-        lr[c] = s
-        if s > top:
-            top = s
-    shares = np.zeros(luts.shape[0])
+            s += luts[_slot(index[c, t], t, lut_off)]
+        w[c] = s
+        top = max(top, s)
     z = 0.0
     for c in range(m):
-        w = area[c] * np.exp(lr[c] - top)
-        lr[c] = w
-        z += w
-    for c in range(m):
-        w = lr[c] / z
-        for t in range(n_terms):
-            i = index[c, t]
-            shares[lut_off[t] + i if i >= 0 else lut_off[t + 1] - 1] += w
+        w[c] = area[c] * np.exp(w[c] - top)
+        z += w[c]
+    return w, z, top
+
+
+@nb.njit(cache=True)
+def _cell_pass(index, area, luts, lut_off):
+    """log Z = log Σ_c A_c exp(Σ_t lut_t[index_ct]) and each level's share of Z (flat, per term
+    at ``lut_off``; no data is each term's last slot, picked by index −1)."""
+    w, z, top = _weights(index, area, luts, lut_off)
+    shares = np.zeros(luts.shape[0])
+    for c in range(index.shape[0]):
+        for t in range(index.shape[1]):
+            shares[_slot(index[c, t], t, lut_off)] += w[c] / z
     return np.log(z) + top, shares
 
 
@@ -372,33 +380,18 @@ def _cell_pass(index, area, luts, lut_off):
 def _pair_pass(index, area, luts, lut_off, pair_off):
     """As :func:`_cell_pass`, plus each pair of terms' joint level shares (flat, pair q = (a, b),
     a < b, at ``pair_off[q]``, row-major in (level of a, level of b), no data in each last slot)."""
+    w, z, top = _weights(index, area, luts, lut_off)
     m, n_terms = index.shape
-    slot = np.empty((m, n_terms), np.int64)
-    lr = np.empty(m)
-    top = -np.inf
-    for c in range(m):
-        s = 0.0
-        for t in range(n_terms):
-            i = index[c, t]
-            slot[c, t] = lut_off[t] + i if i >= 0 else lut_off[t + 1] - 1
-            s += luts[slot[c, t]]
-        lr[c] = s
-        if s > top:
-            top = s
-    z = 0.0
-    for c in range(m):
-        lr[c] = area[c] * np.exp(lr[c] - top)
-        z += lr[c]
     shares = np.zeros(luts.shape[0])
     pairs = np.zeros(pair_off[-1])
     for c in range(m):
-        w = lr[c] / z
+        wc = w[c] / z
         q = 0
         for a in range(n_terms):
-            shares[slot[c, a]] += w
-            ia = slot[c, a] - lut_off[a]
+            sa = _slot(index[c, a], a, lut_off)
+            shares[sa] += wc
             for b in range(a + 1, n_terms):
-                pairs[pair_off[q] + ia * (lut_off[b + 1] - lut_off[b]) + slot[c, b] - lut_off[b]] += w
+                pairs[pair_off[q] + (sa - lut_off[a]) * (lut_off[b + 1] - lut_off[b]) + _slot(index[c, b], b, lut_off) - lut_off[b]] += wc
                 q += 1
     return np.log(z) + top, shares, pairs
 
