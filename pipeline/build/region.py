@@ -205,7 +205,8 @@ BAND_ROWS = 512
 
 def _likelihood(stack: FeatureStack, model: LikelihoodModel) -> np.ndarray:
     """Unnormalised r = Π r_i(F_i) of a feature stack, band of rows by band (the same products, cell by
-    cell); PriorError naming a table that alone zeroes the grid."""
+    cell), with a learned model's tempering and defensive mixture (:func:`calibrate`); PriorError
+    naming a table that alone zeroes the grid."""
     grid = stack.grid
     r = np.empty(grid.shape, dtype=np.float64)
     for r0 in range(0, grid.height, BAND_ROWS):
@@ -217,6 +218,43 @@ def _likelihood(stack: FeatureStack, model: LikelihoodModel) -> np.ndarray:
         for name, term in model.terms.items():
             if not term(stack[name]).any():
                 raise PriorError(f"[likelihood.{name}] is zero on every cell of the grid, so the prior would be zero everywhere")
+    return calibrate(r, *learned_calibration(model))
+
+
+def learned_calibration(model: LikelihoodModel) -> tuple[float, float]:
+    """(τ, ε) of a learned model's ``[meta.learned]`` (``temper_exponent``, ``defensive_epsilon``;
+    docs/learn.md): its prior is p ∝ r^τ, then (1 − ε)·p + ε·uniform over the support r > 0.
+    (1, 0) for a model without them; PriorError naming a bad value."""
+    learned = model.meta.get("learned", {})
+    learned = learned if isinstance(learned, dict) else {}
+    tau, eps = learned.get("temper_exponent", 1.0), learned.get("defensive_epsilon", 0.0)
+    if not (isinstance(tau, int | float) and tau > 0):
+        raise PriorError(f"[meta.learned] temper_exponent must be a number > 0, got {tau!r}")
+    if not (isinstance(eps, int | float) and 0 <= eps < 1):
+        raise PriorError(f"[meta.learned] defensive_epsilon must be a number in [0, 1), got {eps!r}")
+    return float(tau), float(eps)
+
+
+def temper_rows(r: np.ndarray, tau: float) -> None:
+    """r ← r^τ in place (zeros stay zero); a band at a time in the tiled build."""
+    if tau != 1.0:
+        np.power(r, tau, out=r, where=r > 0)
+
+
+def uniform_share(total: float, n_support: int, eps: float) -> float:
+    """The constant c that, added to each of the ``n_support`` cells with r^τ > 0 (sum ``total``),
+    makes the normalised array the defensive mixture (1 − ε)·r^τ/total + ε/n_support there:
+    c = ε·total / ((1 − ε)·n_support) (equal cells, so uniform over the support is 1/n_support a cell)."""
+    return eps * total / ((1.0 - eps) * n_support) if eps > 0 else 0.0
+
+
+def calibrate(r: np.ndarray, tau: float = 1.0, eps: float = 0.0) -> np.ndarray:
+    """Unnormalised r made a learned model's scored prior in place (τ, ε: :func:`learned_calibration`):
+    normalising the result gives (1 − ε)·r^τ/Σr^τ + ε·u, u uniform over the support."""
+    temper_rows(r, tau)
+    if eps > 0:
+        support = r > 0
+        r += uniform_share(float(r.sum()), int(support.sum()), eps) * support
     return r
 
 

@@ -33,6 +33,7 @@ from sklearn.base import BaseEstimator, clone
 from sklearn.utils.validation import check_is_fitted
 from threadpoolctl import threadpool_limits
 
+from pipeline.build.region import calibrate
 from pipeline.config.learn import FormSpec
 from pipeline.features.stack import Feature, FeatureStack
 from pipeline.learn.forms import BASIS_FORMS, basis, difference_penalty, from_scale, to_scale
@@ -462,7 +463,7 @@ class PriorEstimator(BaseEstimator):
         for f in folds:
             train = used.subset(fold != f)
             test = fold == f
-            res = self._solve(cells, train, params)
+            res = self._solve(cells, train, params, self.theta_ if self.method == "ml" else None)  # warm start: the full fit
             x = np.concatenate([r.x for r in res])
             obj = Objective(cells, train, params, list(range(len(params))), self.penalty_sd, self.smooth_sd)
             lr_f = np.zeros(int(test.sum()))
@@ -475,26 +476,20 @@ class PriorEstimator(BaseEstimator):
             per_fold.append((test, lc))
         log_u = -np.log(cells.area[support].sum())
         log_area = np.log(cells.area)
-        w = used.weights
+        per_fold = [(test, lc[np.isfinite(lc)], log_area[np.isfinite(lc)]) for test, lc in per_fold]
+        w = used.weights / used.weights.sum()
         fit_eps, fit_tau = self.defensive == "cv", self.temper == "cv"
         eps0 = 0.0 if fit_eps else float(self.defensive or 0.0)
         tau0 = 1.0 if fit_tau else float(self.temper or 1.0)
 
-        def nll(z: np.ndarray) -> float:
-            eps = z[0] if fit_eps else eps0
-            tau = z[-1] if fit_tau else tau0
-            logp = np.empty(len(fold))
-            for test, lc in per_fold:
-                ok = np.isfinite(lc)
-                top = float((tau * lc[ok] + log_area[ok]).max())
-                logp[test] = tau * lr[test] - (top + np.log(np.exp(tau * lc[ok] + log_area[ok] - top).sum()))
-            mix = np.logaddexp(np.log1p(-eps) + logp, np.log(eps) + log_u) if eps > 0 else logp
-            return -float(w @ mix) / w.sum()
+        def nll(z: np.ndarray) -> tuple[float, np.ndarray]:
+            return calibration_nll(eps0 if not fit_eps else z[0], tau0 if not fit_tau else z[-1], per_fold, lr, log_u, w,
+                                   (fit_eps, fit_tau))
 
         z0 = np.array([0.01] * fit_eps + [1.0] * fit_tau)
         bounds = [(0.0, 0.999)] * fit_eps + [(TEMPER_MIN, 1.5)] * fit_tau
         with threadpool_limits(limits=1, user_api="blas"):
-            best = optimize.minimize(nll, z0, method="L-BFGS-B", bounds=bounds)
+            best = optimize.minimize(nll, z0, jac=True, method="L-BFGS-B", bounds=bounds)
         z = best.x
         return (float(z[0]) if fit_eps else eps0), (float(z[-1]) if fit_tau else tau0)
 
@@ -582,12 +577,12 @@ class PriorEstimator(BaseEstimator):
             }
         }
         if self.temper_ != 1.0:
-            meta["learned"]["tempering"] = (f"p proportional to r^{self.temper_:.4g} (r: these tables); not representable in "
-                                            "them (the estimator's prior_ and --hybrid-prior apply it)")
+            meta["learned"]["tempering"] = (f"p proportional to r^{self.temper_:.4g} (r: these tables); "
+                                            "build --model applies it (temper_exponent)")
         if self.defensive_:
             meta["learned"]["defensive_mixture"] = (
                 f"p = (1 - {self.defensive_:.4g}) * p_model + {self.defensive_:.4g} * uniform over the support; "
-                "not representable in these tables (the estimator's prior_ and --hybrid-prior apply it)")
+                "build --model applies it (defensive_epsilon)")
         forms = {t.feature: t.form + (f" in {t.scale}, {t.n_knots} knots" if t.form in ("increasing", "decreasing", "spline") else "")
                  + (f", lambda {t.lam:g}" if t.form == "spline" else "") for t in self.terms_ if t.form in BASIS_FORMS}
         if forms:
@@ -612,13 +607,8 @@ class PriorEstimator(BaseEstimator):
             p = self.likelihoods_[SPATIAL]
             logr = kde_logr(self.stack_[SPATIAL].values, p["gamma"], p["alpha"])
             r *= np.exp(logr - logr.max())
-        if self.temper_ != 1.0:
-            pos = r > 0
-            r = np.where(pos, np.exp(self.temper_ * (np.log(np.where(pos, r, 1.0)) - np.log(r.max()))), 0.0)
-        if self.defensive_ > 0:
-            support = r > 0
-            r = (1.0 - self.defensive_) * r / r.sum() + self.defensive_ * support / support.sum()
-        return TerrainPrior.from_array(r, self.stack_.grid, self.model_.to_dict())
+        # τ and ε as `build --model` applies them to the written tables (one formula)
+        return TerrainPrior.from_array(calibrate(r, self.temper_, self.defensive_), self.stack_.grid, self.model_.to_dict())
 
     def score_samples(self, X: np.ndarray) -> np.ndarray:
         """log p(x) per point of X (N, 2) (metres; log of a density per m²); −inf off the grid or on an
@@ -721,6 +711,31 @@ def _with_lambda(p: TermParams, lam: float) -> TermParams:
     """A spline term's parameters with difference-penalty weight ``lam``."""
     return dataclasses.replace(p, term=dataclasses.replace(p.term, lam=float(lam)),
                                pen=float(lam) * difference_penalty(p.term.form, p.term.n_knots))
+
+
+def calibration_nll(eps: float, tau: float, per_fold: list, lr: np.ndarray, log_u: float, w: np.ndarray,
+                    free: tuple[bool, bool] = (True, True)) -> tuple[float, np.ndarray]:
+    """Minus the mean log-likelihood Σ_i w_i log((1 − ε)·p^τ_{−f(i)}(x_i) + ε·u) (``w`` summing to 1)
+    and its gradient in the ``free`` ones of (ε, τ). ``per_fold``: (held-out mask, log r per support
+    combination, log area per combination) of each fold's model; ``lr`` each point's log r under the
+    model that did not see it; ``log_u`` log of the uniform density over the support (per m²).
+    d log p_i / dτ = log r_i − E[log r] under the fold's tempered density; d/dε by the mixture's chain rule."""
+    logp, dlogp = np.empty(len(lr)), np.empty(len(lr))
+    for test, lc, la in per_fold:
+        e = tau * lc + la
+        top = float(e.max())
+        q = np.exp(e - top)
+        z_f = q.sum()
+        logp[test] = tau * lr[test] - (top + np.log(z_f))
+        dlogp[test] = lr[test] - float(q @ lc) / z_f
+    if eps > 0:
+        mix = np.logaddexp(np.log1p(-eps) + logp, np.log(eps) + log_u)
+        rho = np.exp(np.log1p(-eps) + logp - mix)  # the model's share of each point's mixture density
+        d_eps = np.exp(log_u - mix) - np.exp(logp - mix)
+    else:
+        mix, rho, d_eps = logp, np.ones(len(lr)), np.exp(log_u - logp) - 1.0
+    grad = [-(w @ d_eps)] * free[0] + [-(w @ (rho * dlogp))] * free[1]
+    return -float(w @ mix), np.array(grad, dtype=np.float64)
 
 
 def _block_diag(blocks: list[np.ndarray]) -> np.ndarray:

@@ -45,7 +45,13 @@ from rasterio.windows import Window
 from tqdm import tqdm
 
 from common.dask import using_client
-from pipeline.build.region import region_model, region_provenance
+from pipeline.build.region import (
+    learned_calibration,
+    region_model,
+    region_provenance,
+    temper_rows,
+    uniform_share,
+)
 from pipeline.config.region import RegionConfig
 from pipeline.gis.grid import Grid
 from pipeline.prior.likelihood import LikelihoodModel
@@ -63,7 +69,8 @@ GDAL_CACHE_BYTES = 256 << 20
 
 # ------------------------------------------------------------------------------------ pass 1
 def _r_tile(config: RegionConfig, model: LikelihoodModel, specs, caps, core: Window, r_path: str) -> dict:
-    """Pass 1 for one tile: features, r = Π r_i in build_prior's order, written to the scratch file."""
+    """Pass 1 for one tile: features, r = Π r_i in build_prior's order (tempered by a learned model's τ),
+    written to the scratch file."""
     t0 = time.perf_counter()
     stack = tile_features(config, specs, caps, core)
     r = np.ones(stack.grid.shape, dtype=np.float64)
@@ -72,13 +79,14 @@ def _r_tile(config: RegionConfig, model: LikelihoodModel, specs, caps, core: Win
         single = LikelihoodModel({name: term}).evaluate(stack)
         nonzero[name] = bool(single.any())
         r *= single
+    temper_rows(r, learned_calibration(model)[0])
     bad = ~np.isfinite(r) | (r < 0)
     first_bad = None
     if bad.any():
         rows, cols = np.nonzero(bad)
         first_bad = (int(rows[0]) + core.row_off, int(cols[0]) + core.col_off)
     NpyRows(Path(r_path), config.grid.shape).write(core.row_off, core.col_off, r)
-    return {"nonzero": nonzero, "n_bad": int(bad.sum()), "first_bad": first_bad,
+    return {"nonzero": nonzero, "n_bad": int(bad.sum()), "first_bad": first_bad, "n_support": int((r > 0).sum()),
             "cells": int(r.size), "seconds": time.perf_counter() - t0}
 
 
@@ -98,12 +106,15 @@ def _timed_r_tile(*args) -> dict:
 
 
 # ------------------------------------------------------------------------------------ pass 2
-def _prior_strips(r_store: NpyRows, total_r: float, grid: Grid, progress: bool) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+def _prior_strips(r_store: NpyRows, total_r: float, grid: Grid, progress: bool,
+                  share: float = 0.0, n_support: int = 0) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """Density and table strips of STRIP_ROWS rows for :func:`pipeline.prior.write.write_prior`, each
     under the last table row of the strip before. Rows of r are read with plain file I/O (no memory
-    maps, no per-strip msync) into buffers allocated once and reused for every strip."""
+    maps, no per-strip msync) into buffers allocated once and reused for every strip. ``share``: the
+    defensive mixture's constant added to each of the ``n_support`` cells with r > 0
+    (:func:`pipeline.build.region.uniform_share`)."""
     h, w = grid.shape
-    total = total_r * grid.cell_area
+    total = (total_r + share * n_support) * grid.cell_area
     rows = STRIP_ROWS
     r_buf = np.empty((rows, w))
     density = np.empty((rows, w), dtype=np.float32)  # the kernel rounds float64 -> float32 as astype does
@@ -116,6 +127,8 @@ def _prior_strips(r_store: NpyRows, total_r: float, grid: Grid, progress: bool) 
         for r0 in tqdm(range(0, h, rows), desc="prior strips", unit="strip", disable=not progress):
             n = min(rows, h - r0)
             f_r.readinto(memoryview(r_buf[:n]).cast("B"))
+            if share:
+                r_buf[:n] += share * (r_buf[:n] > 0)
             density_table_rows(r_buf[:n], total, grid.cell_area, block[0], block2[0], density[:n], block[1 : n + 1], block2[1 : n + 1])
             yield density[:n], block[1 : n + 1], block2[1 : n + 1]
             block[0] = block[n]
@@ -139,6 +152,7 @@ def build_prior_tiled(
     Returns a summary: path, shape, tiles, seconds of each pass, tile seconds per worker.
     """
     model = region_model(config, model)
+    eps = learned_calibration(model)[1]  # checked here, before the tiles (which apply τ) run
     out = Path(out)
     specs = needed_features(config, model.terms)
     caps = distance_caps(config, model, specs)
@@ -163,9 +177,11 @@ def build_prior_tiled(
                 raise PriorError(
                     "the likelihood table makes r zero everywhere on the grid; check for structural zeros covering the region"
                 )
+            n_support = sum(res["n_support"] for res in results)
+            share = uniform_share(total_r, n_support, eps)
             # GDAL's block cache defaults to 5% of RAM; pass 2 streams, so a small cache keeps the client small.
             with rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_BYTES):
-                write_prior(out, config.grid, description, _prior_strips(r_store, total_r, config.grid, progress))
+                write_prior(out, config.grid, description, _prior_strips(r_store, total_r, config.grid, progress, share, n_support))
     t2 = time.perf_counter()
     per_worker: dict[str, dict] = {}
     for res in results:

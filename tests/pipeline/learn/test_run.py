@@ -119,3 +119,40 @@ def test_kde_mass_on_the_grid_matches_dense_integration() -> None:
                                opts={"epsabs": 1e-6, "limit": 100})
     assert np.isclose(np.exp(kde_log_mass(pts, h, (0.0, 0.0, 1000.0, 600.0))), dense, rtol=1e-4)
     assert dense < 0.95  # the plane-normalised KDE would have been scored as if it were 1
+
+
+def test_build_model_applies_tempering_and_defensive_mixture_as_scored(weighted_targets, tmp_path) -> None:
+    """`build --model` (in memory and tiled) gives the estimator's own density: τ and ε from [meta.learned]."""
+    import warnings
+
+    from pipeline.build.region import build_features, build_region_prior
+    from pipeline.learn.estimator import PriorEstimator
+    from pipeline.prior.terrain import PriorError, TerrainPrior
+    from pipeline.tiled.build import build_prior_tiled
+    from tests.dask_helpers import shared_client
+
+    _, _, pts, _ = weighted_targets
+    region, _ = load_learn_config(cut_config(tmp_path, None))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        stack = build_features(region, progress=False)
+        est = PriorEstimator(features=stack, template=region.model, defensive=0.2, temper=0.6,
+                             forms={"road_distance": {"form": "decreasing", "scale": "log1p", "knots": 4}}).fit(pts)
+    est.model_.write_toml(tmp_path / "m.toml")
+    model = LikelihoodModel.read_toml(tmp_path / "m.toml")
+    assert model.meta["learned"]["temper_exponent"] == 0.6 and model.meta["learned"]["defensive_epsilon"] == 0.2
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        built = build_region_prior(region, model, progress=False)
+        plain = build_region_prior(region, LikelihoodModel(model.terms), progress=False)
+    scored = est.prior_.density
+    assert np.allclose(built.density, scored, rtol=1e-9, atol=0)
+    support = scored > 0
+    floor = 0.2 / (support.sum() * region.grid.cell_area)  # ε·u: every supported cell keeps at least this
+    assert scored[support].min() >= floor * (1 - 1e-12) and plain.density[support].min() < floor
+    assert not np.allclose(plain.density, scored, rtol=1e-3)
+    out = build_prior_tiled(region, tmp_path / "tiled.tif", model, client=shared_client(), tile=96, progress=False)
+    assert np.allclose(TerrainPrior.read(out["path"]).density, scored, rtol=2e-7, atol=0)  # float32 on disk
+    bad = LikelihoodModel(model.terms, {"learned": {"defensive_epsilon": 1.5}})
+    with pytest.raises(PriorError, match="defensive_epsilon"):
+        build_region_prior(region, bad, progress=False)
