@@ -19,13 +19,14 @@ import multiprocessing
 import os
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from functools import lru_cache, partial
 from pathlib import Path
 
 import numba
 import numpy as np
 import pandas as pd
+from affine import Affine
 from tqdm.auto import tqdm
 
 from common.atomic import atomic_paths
@@ -38,7 +39,13 @@ from tracker.models.sfunc import ExpS, PoissonS, SModel
 from tracker.study.compare import best_tau_index, compare, comparison_table, prob_better
 from tracker.study.metrics import ScoreGram, gospa, mixture_weights, ospa, posterior_means, purity
 from tracker.study.plots import PAPER_TABLE, table_markdown, write_figures
-from tracker.study.simulate import AirborneSensor, file_targets, simulate, simulate_points
+from tracker.study.simulate import (
+    AirborneSensor,
+    central_windows,
+    file_targets,
+    simulate,
+    simulate_points,
+)
 
 VARIANTS = ("UU", "UT", "TT")
 METHODS = ("greedy", "batch")
@@ -86,6 +93,16 @@ class ExperimentConfig:
     ``batch_anneal`` annealed sweeps per restart and ``batch_restarts`` restarts from singletons."""
     batch_anneal: int = 10
     batch_restarts: int = 1
+    batch_window: bool = True
+    """Batch associates under the design's own model: r restricted to the central keep window and
+    renormalised (:func:`window_prior`; UU: uniform over the window), where the design puts every
+    target. Greedy keeps r over the whole grid, as in the paper."""
+    batch_nd_samples: int = 100
+    """N̂_D of batch is the posterior median of N_D (the Bayes estimate under |N̂_D − N_D|), from
+    ``batch_nd_burn_in`` + ``batch_nd_samples`` sampling sweeps started at the MAP partition; it is
+    computed with the exact S and at each batch algorithm's best τ (:func:`add_batch_nd`).
+    0: no sampling (N̂_D is the MAP partition's cluster count only)."""
+    batch_nd_burn_in: int = 10
 
     def __post_init__(self) -> None:
         bad = [v for v in self.variants if v not in VARIANTS]
@@ -122,6 +139,47 @@ def _read_prior(prior_path: str, inode: int, mtime_ns: int, size: int) -> Terrai
     # The summed-area tables are memory-mapped; inode, mtime and size only key the cache (an atomic
     # rewrite replaces the inode).
     return TerrainPrior.read(prior_path)
+
+
+def window_mask(prior: TerrainPrior, bounds: tuple[float, float, float, float]) -> np.ndarray:
+    """(H, W) cells whose centres lie in ``bounds`` (xmin, ymin, xmax, ymax metres)."""
+    g = prior.grid
+    x = g.transform.c + (np.arange(g.width) + 0.5) * g.dx
+    y = g.transform.f - (np.arange(g.height) + 0.5) * g.dy
+    return ((y >= bounds[1]) & (y < bounds[3]))[:, None] & ((x >= bounds[0]) & (x < bounds[2]))[None, :]
+
+
+def window_prior(prior: TerrainPrior, bounds: tuple[float, float, float, float]) -> TerrainPrior:
+    """r restricted to the cells of ``bounds`` and renormalised (per m²), on the sub-grid of those cells:
+    the target density of the central-window design. Its grid is the window, so UU's u = 1 / window area."""
+    mask = window_mask(prior, bounds)
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if not rows.size:
+        raise ValueError(f"window {bounds} holds no cell centre of the grid {prior.grid.bounds}")
+    g = prior.grid
+    grid = replace(g, transform=g.transform @ Affine.translation(int(cols[0]), int(rows[0])), height=rows.size, width=cols.size)
+    r = prior.density[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1]
+    return TerrainPrior.from_array(r, grid, {**prior.model, "window": [float(b) for b in bounds]})
+
+
+def expected_in_window(prior: TerrainPrior, n_targets: int, region_m: float | None = 14000.0,
+                       keep_fraction: float = 0.5) -> float:
+    """μ: the expected number of the paper's ``n_targets`` (drawn over the region) that fall in the
+    central window, n_targets × mass(window) / mass(region)."""
+    region, keep = central_windows(prior, region_m, keep_fraction)
+    return n_targets * float(prior.density[window_mask(prior, keep)].sum()) / float(prior.density[window_mask(prior, region)].sum())
+
+
+def _load_window_prior(prior_path: str, region_m: float | None, keep_fraction: float) -> TerrainPrior:
+    """:func:`window_prior` of the design's keep window, built once per process and prior file version."""
+    prior = _load_prior(prior_path)
+    return _window_of(prior, region_m, keep_fraction)
+
+
+@lru_cache(maxsize=4)
+def _window_of(prior: TerrainPrior, region_m: float | None, keep_fraction: float) -> TerrainPrior:
+    # keyed by the cached prior object, which _read_prior renews when the file changes
+    return window_prior(prior, central_windows(prior, region_m, keep_fraction)[1])
 
 
 class CachedIntegrator:
@@ -202,44 +260,78 @@ class _Components:
                          integrator=integrator, needed=needed)
 
 
+def _scenario(prior: TerrainPrior, seed: int, config: ExperimentConfig):
+    """Data set ``seed`` of the design: targets from the prior (or the targets file), reports."""
+    if config.targets_file is None:
+        return simulate(prior, seed, config.n_targets, config.n_reports, config.region_m, config.keep_fraction, config.sensor)
+    locations = file_targets(config.targets_file, config.targets_layer, prior.grid)
+    return simulate_points(prior, locations, seed, config.n_targets, config.n_reports, config.region_m,
+                           config.keep_fraction, config.sensor, source=config.targets_file)
+
+
+def _settings(config: ExperimentConfig) -> list[tuple[str, float, SModel]]:
+    """(label, τ, S model): the paper's e^{-nτ} per τ, and optionally eq. 16 under Poisson(μ)."""
+    settings = [("exp", float(tau), ExpS(float(tau))) for tau in config.taus]
+    if config.poisson_mu is not None:
+        settings.append(("poisson", float("nan"), PoissonS(config.poisson_mu)))
+    return settings
+
+
+@dataclass
+class _Context:
+    """One data set's prior, reports and integrators; ``model_prior`` is the one batch associates with."""
+
+    prior: TerrainPrior
+    reports: object
+    integrator: CachedIntegrator
+    model_prior: TerrainPrior
+    model_integrator: CachedIntegrator
+    config: ExperimentConfig
+    runs: dict = field(default_factory=dict)
+
+
+def _context(prior_path: str, reports, config: ExperimentConfig, integrator: CachedIntegrator) -> _Context:
+    prior = integrator.prior
+    model_prior = prior
+    model_integrator = integrator
+    if config.batch_window and "batch" in config.methods:
+        model_prior = _load_window_prior(prior_path, config.region_m, config.keep_fraction)
+        model_integrator = CachedIntegrator(model_prior, partial(integrate_checked, method=config.integrator))
+    return _Context(prior, reports, integrator, model_prior, model_integrator, config)
+
+
 def run_dataset(prior_path: str | os.PathLike, seed: int, config: ExperimentConfig) -> list[dict]:
     """Simulate data set ``seed`` and score every variant at every τ; one record per (variant, τ).
 
     Record fields: dataset seed, variant, s_model ("exp": S = e^{-nτ}; "poisson": eq. 16 with
     ``config.poisson_mu``, tau NaN), tau, score (per m; the paper plots it ×10^4.5),
-    score_error_bound (bound on |Score²| error from skipped negligible pairs, per m²), nd_hat, nd,
-    nd_abs_error, gospa_m and ospa_m (metres, cut-off ``gospa_c_m``; points are the estimate's means:
+    score_error_bound (bound on |Score²| error from skipped negligible pairs, per m²), log_posterior
+    (ln p(Λ|Z) + const under the method's associating model: greedy's r over the grid, batch's
+    :attr:`ExperimentConfig.batch_window` model) and greedy_log_posterior (greedy's partition under
+    that same model), nd_hat (the partition's cluster count), nd, nd_abs_error,
+    gospa_m and ospa_m (metres, cut-off ``gospa_c_m``; points are the estimate's means:
     the Gaussians' for UU, the terrain posteriors' for UT and TT), rms_error_m (root mean square distance
     of the posterior means to their detected targets in GOSPA's assignment, pairs closer than the cut-off),
     purity, skipped (reports off the prior, left unassigned), n_targets (kept targets in the window).
     """
     prior = _load_prior(str(prior_path))
-    if config.targets_file is None:
-        sc = simulate(prior, seed, config.n_targets, config.n_reports, config.region_m, config.keep_fraction, config.sensor)
-    else:
-        locations = file_targets(config.targets_file, config.targets_layer, prior.grid)
-        sc = simulate_points(prior, locations, seed, config.n_targets, config.n_reports, config.region_m,
-                             config.keep_fraction, config.sensor, source=config.targets_file)
+    sc = _scenario(prior, seed, config)
     reports = sc.reports
     integrator = CachedIntegrator(prior, partial(integrate_checked, method=config.integrator))
+    ctx = _context(str(prior_path), reports, config, integrator)
     comps = _Components()
     perfect = perfect_estimate(prior, reports, terrain=True, integrator=integrator)
     ref = comps.register(np.searchsorted(perfect.labels, reports.truth), perfect.means, perfect.covs, True)
     detected = sc.targets[perfect.labels]
     nd = len(ref)
 
-    # (label, τ, S model): the paper's e^{-nτ} per τ, and optionally eq. 16 under Poisson(μ).
-    settings = [("exp", float(tau), ExpS(float(tau))) for tau in config.taus]
-    if config.poisson_mu is not None:
-        settings.append(("poisson", float("nan"), PoissonS(config.poisson_mu)))
     evaluations = []
-    runs: dict[tuple[str, str, SModel], _Run] = {}
     for variant in config.variants:
         # UT associates exactly as UU (paper sec. 6); only its reported estimate differs.
         assoc_variant = "UU" if variant == "UT" else variant
-        for label, tau, s_model in settings:
+        for label, tau, s_model in _settings(config):
             for method in config.methods:
-                res = _run(runs, method, prior, reports, assoc_variant, s_model, integrator, config)
+                res = _run(ctx, method, assoc_variant, s_model)
                 est = res.estimate
                 members = comps.register(res.assignments, est.means, est.covs, variant != "UU")
                 evaluations.append((variant, method, label, tau, res, members))
@@ -271,6 +363,7 @@ def run_dataset(prior_path: str | os.PathLike, seed: int, config: ExperimentConf
         records.append({
             "seed": int(seed), "variant": variant, "method": method, "algorithm": algorithm_name(variant, method),
             "s_model": label, "tau": tau, "score": s, "score_error_bound": err, "log_posterior": res.log_posterior,
+            "greedy_log_posterior": res.greedy_log_posterior,
             "nd_hat": int(res.n_detected), "nd": nd, "nd_abs_error": abs(int(res.n_detected) - nd),
             **assoc_metrics[key], "n_targets": int(len(sc.targets)),
         })
@@ -285,38 +378,108 @@ def algorithm_name(variant: str, method: str) -> str:
 @dataclass(frozen=True)
 class _Run:
     """One association of a data set: ``assignments`` (K,) (−1: skipped), the fused Gaussians
-    ``estimate`` (row q = hypothesis q), and ln p(Λ|Z) + const under the associating variant and S."""
+    ``estimate`` (row q = hypothesis q), ln p(Λ|Z) + const under the associating model, and that of
+    greedy's partition under the same model."""
 
     assignments: np.ndarray
     estimate: object
     n_detected: int
     log_posterior: float
+    greedy_log_posterior: float
 
 
-def _run(runs: dict, method: str, prior: TerrainPrior, reports, variant: str, s_model: SModel,
-         integrator: Integrator, config: ExperimentConfig) -> _Run:
-    """The (memoised) association of ``reports`` by ``method``; batch starts from greedy's partition of
-    the reports greedy kept on the prior."""
+def _run(ctx: _Context, method: str, variant: str, s_model: SModel) -> _Run:
+    """The (memoised) association of the reports by ``method``. Batch starts from greedy's partition of
+    the reports greedy kept on the prior that also have mass under batch's model."""
     key = (method, variant, s_model)
-    if key in runs:
-        return runs[key]
+    if key in ctx.runs:
+        return ctx.runs[key]
+    reports = ctx.reports
     if method == "greedy":
-        res = associate(prior, reports, variant, s_model=s_model, off_prior="skip", integrator=integrator)
+        res = associate(ctx.prior, reports, variant, s_model=s_model, off_prior="skip", integrator=ctx.integrator)
         on = res.assignments >= 0
-        lp = log_posterior(prior, reports.subset(np.flatnonzero(on)), res.assignments[on], s_model, variant, integrator)
-        runs[key] = _Run(res.assignments, res.estimate, int(res.n_detected), lp)
-        return runs[key]
-    greedy = _run(runs, "greedy", prior, reports, variant, s_model, integrator, config)
-    kept = np.flatnonzero(greedy.assignments >= 0)
+        lp = log_posterior(ctx.prior, reports.subset(np.flatnonzero(on)), res.assignments[on], s_model, variant, ctx.integrator)
+        ctx.runs[key] = _Run(res.assignments, res.estimate, int(res.n_detected), lp, lp)
+        return ctx.runs[key]
+    greedy = _run(ctx, "greedy", variant, s_model)
+    kept, init = _batch_start(ctx, greedy.assignments, variant)
     sub = reports.subset(kept)
-    res = BatchAssociator(prior, variant, s_model=s_model, anneal=config.batch_anneal, restarts=config.batch_restarts,
-                          seed=0, integrator=integrator).fit(sub, init=greedy.assignments[kept])
+    res = BatchAssociator(ctx.model_prior, variant, s_model=s_model, anneal=ctx.config.batch_anneal,
+                          restarts=ctx.config.batch_restarts, seed=0, integrator=ctx.model_integrator).fit(sub, init=init)
     assignments = np.full(len(reports), -1, np.int64)
     assignments[kept] = res.labels
     # the Gaussian parts only: a component's terrain flag applies r when it is scored
-    est = batch_estimate(prior, sub, res.labels, "UU", integrator)
-    runs[key] = _Run(assignments, est, res.n_detected, res.log_posterior)
-    return runs[key]
+    est = batch_estimate(ctx.prior, sub, res.labels, "UU", ctx.integrator)
+    ctx.runs[key] = _Run(assignments, est, res.n_detected, res.log_posterior, res.greedy_log_posterior)
+    return ctx.runs[key]
+
+
+def _batch_start(ctx: _Context, greedy_assignments: np.ndarray, variant: str) -> tuple[np.ndarray, np.ndarray]:
+    """Indices of the reports batch associates, and greedy's labels of them (0..n−1): greedy's kept
+    reports, less (TT) those without mass under the model prior (a report far outside the window)."""
+    on = greedy_assignments >= 0
+    if variant == "TT" and ctx.model_prior is not ctx.prior:
+        r = ctx.reports
+        on &= ctx.model_integrator(ctx.model_prior, r.means, r.covs) > 0
+    kept = np.flatnonzero(on)
+    return kept, np.unique(greedy_assignments[kept], return_inverse=True)[1]
+
+
+def posterior_median(values: np.ndarray, prob: np.ndarray) -> int:
+    """The smallest value whose posterior CDF reaches 1/2 (``values`` ascending)."""
+    return int(values[min(int(np.searchsorted(np.cumsum(prob), 0.5 - 1e-12)), len(values) - 1)])
+
+
+def batch_nd(prior_path: str | os.PathLike, seed: int, config: ExperimentConfig,
+             wanted: Sequence[tuple[str, str, float | None]]) -> list[dict]:
+    """The posterior of N_D for data set ``seed`` under batch's model, per (associating variant,
+    s_model label, τ) in ``wanted`` (τ None for "poisson"): ``batch_nd_burn_in`` + ``batch_nd_samples``
+    sampling sweeps (one split–merge proposal each) from the MAP partition of :func:`run_dataset`.
+    Records: seed, assoc_variant, s_model, tau (+inf for "poisson"), nd_hat_bayes (posterior median),
+    nd_posterior_mean."""
+    prior = _load_prior(str(prior_path))
+    reports = _scenario(prior, seed, config).reports
+    ctx = _context(str(prior_path), reports, config, CachedIntegrator(prior, partial(integrate_checked, method=config.integrator)))
+    models = {(label, tau if label == "exp" else None): s for label, tau, s in _settings(config)}
+    out = []
+    for variant, label, tau in wanted:
+        s_model = models[(label, tau)]
+        mapped = _run(ctx, "batch", variant, s_model)
+        kept = np.flatnonzero(mapped.assignments >= 0)
+        res = BatchAssociator(ctx.model_prior, variant, s_model=s_model, mode="sample", burn_in=config.batch_nd_burn_in,
+                              samples=config.batch_nd_samples, split_merge=1, seed=seed,
+                              integrator=ctx.model_integrator).fit(reports.subset(kept), init=mapped.assignments[kept])
+        out.append({"seed": int(seed), "assoc_variant": variant, "s_model": label, "tau": np.inf if tau is None else tau,
+                    "nd_hat_bayes": posterior_median(res.nd_values, res.nd_prob),
+                    "nd_posterior_mean": float(res.nd_values @ res.nd_prob)})
+    return out
+
+
+def add_batch_nd(results: pd.DataFrame, prior_path: str | os.PathLike, config: ExperimentConfig,
+                 mapper: Callable[[Callable[[int], list[dict]], Sequence[int]], Iterable[list[dict]]]) -> pd.DataFrame:
+    """Batch's Bayes N̂_D (:func:`batch_nd`) with the exact S and at each batch algorithm's best τ (by
+    mean Score, as Appendix B picks τ*), as columns nd_hat_bayes, nd_abs_error_bayes (NaN elsewhere);
+    ``mapper(fn, seeds)`` runs the data sets (:func:`map_local`, or Dask)."""
+    if "batch" not in config.methods or not config.batch_nd_samples:
+        return results
+    exp = results[results["s_model"] == "exp"]
+    taus = sorted(exp["tau"].unique())
+    wanted = set()
+    for v in config.variants:
+        assoc = "UU" if v == "UT" else v
+        wanted.add((assoc, "exp", float(taus[best_tau_index(score_matrix(exp, algorithm_name(v, "batch")))])))
+        if config.poisson_mu is not None:
+            wanted.add((assoc, "poisson", None))
+    fn = partial(batch_nd, str(prior_path), config=config, wanted=tuple(sorted(wanted, key=str)))
+    nd = pd.DataFrame([r for records in mapper(fn, config.seeds) for r in records])
+    key = ["seed", "assoc_variant", "s_model", "tau"]  # τ of the exact S: +inf (NaN never matches in a merge)
+    left = results.assign(assoc_variant=results["variant"].replace("UT", "UU"), tau=results["tau"].fillna(np.inf))
+    merged = left.merge(nd[[*key, "nd_hat_bayes", "nd_posterior_mean"]], on=key, how="left")
+    greedy = merged["method"] != "batch"
+    merged.loc[greedy, ["nd_hat_bayes", "nd_posterior_mean"]] = np.nan
+    merged["nd_abs_error_bayes"] = (merged["nd_hat_bayes"] - merged["nd"]).abs()
+    merged["tau"] = results["tau"].to_numpy()
+    return merged.drop(columns="assoc_variant")
 
 
 def _worker_init() -> None:
@@ -350,15 +513,15 @@ def map_local(fn: Callable[[int], list[dict]], seeds: Sequence[int], workers: in
 def run_experiment(
     prior_path: str | os.PathLike, config: ExperimentConfig, workers: int | None = None, progress: bool = True
 ) -> pd.DataFrame:
-    """All data sets, variants and τ values as one long table (rows sorted by seed, variant, τ)."""
-    fn = partial(run_dataset, str(prior_path), config=config)
-    rows: list[dict] = []
-    bar = tqdm(total=config.n_datasets, desc="data sets", unit="set", disable=not progress)
-    for records in map_local(fn, config.seeds, workers):
-        rows.extend(records)
-        bar.update(1)
-    bar.close()
-    return pd.DataFrame(rows).sort_values(["seed", "method", "variant", "tau"], kind="stable").reset_index(drop=True)
+    """All data sets, variants and τ values as one long table (rows sorted by seed, variant, τ), with
+    batch's Bayes N̂_D (:func:`add_batch_nd`) when batch runs."""
+
+    def mapper(fn: Callable[[int], list[dict]], seeds: Sequence[int], desc: str = "data sets") -> Iterable[list[dict]]:
+        yield from tqdm(map_local(fn, seeds, workers), total=len(seeds), desc=desc, unit="set", disable=not progress)
+
+    rows = [r for records in mapper(partial(run_dataset, str(prior_path), config=config), config.seeds) for r in records]
+    results = pd.DataFrame(rows).sort_values(["seed", "method", "variant", "tau"], kind="stable").reset_index(drop=True)
+    return add_batch_nd(results, prior_path, config, partial(mapper, desc="batch N_D posterior"))
 
 
 def score_matrix(results: pd.DataFrame, algorithm: str, column: str = "score") -> np.ndarray:
@@ -387,6 +550,7 @@ def summarise(results: pd.DataFrame, config: ExperimentConfig) -> dict:
         nd_err = score_matrix(results, v, "nd_abs_error")
         per_variant[v] = {
             "best_tau": taus[b],
+            "best_tau_at_grid_edge": bool(len(taus) > 1 and b in (0, len(taus) - 1)),
             "best_mean_score": float(s[:, b].mean()),
             "best_mean_score_x10^4.5": float(s[:, b].mean() * 10**4.5),
             "best_std_score": float(s[:, b].std(ddof=1)),
@@ -422,43 +586,64 @@ def summarise(results: pd.DataFrame, config: ExperimentConfig) -> dict:
     }
 
 
+def _column_at(results: pd.DataFrame, algorithm: str, tau: float, column: str) -> np.ndarray:
+    """One algorithm's ``column`` at one τ (NaN: the exact-S rows), per data set in seed order."""
+    rows = results[results["algorithm"] == algorithm]
+    rows = rows[rows["tau"].isna()] if np.isnan(tau) else rows[rows["tau"] == tau]
+    return rows.sort_values("seed")[column].to_numpy(dtype=np.float64)
+
+
 def batch_vs_greedy(results: pd.DataFrame, poisson: pd.DataFrame, scores: dict[str, np.ndarray]) -> dict:
-    """Appendix B for batch against greedy, per variant run by both: P(batch better) on mean Score and
-    on |N̂_D − N_D|, each at its own best τ (normal and t forms) and, with Poisson rows, with the exact S;
-    ln p(Λ|Z) of batch minus greedy per (data set, S) (``min_log_posterior_gain`` ≥ 0 when batch is never
-    below greedy); for UU, the share of the UU → TT greedy gap in mean Score (best τ) that batch UU closes."""
+    """Appendix B for batch against greedy, per variant run by both, each algorithm at its own τ* (the
+    best mean-Score τ) and, with Poisson rows, with the exact S: P(batch better) on Score and on
+    |N̂_D − N_D| (batch's N̂_D the posterior median ``nd_abs_error_bayes`` when present, keys
+    ``*_map_count`` with the MAP partition's count; greedy's its count); ln p(Λ|Z) of batch minus that of
+    greedy's partition under batch's model per (data set, S) (``min_log_posterior_gain`` ≥ 0 when batch is
+    never below greedy); for UU, the share of the UU → TT greedy gap in mean Score (τ*) that batch UU closes."""
     out: dict[str, dict] = {}
+    taus = sorted(results["tau"].unique())
+    both = pd.concat([results, poisson])
+    bayes = "nd_abs_error_bayes" in both
     for v in VARIANTS:
         b, g = algorithm_name(v, "batch"), v
         if b not in scores or g not in scores:
             continue
-        nd_b, nd_g = score_matrix(results, b, "nd_abs_error"), score_matrix(results, g, "nd_abs_error")
-        gain = (score_matrix(results, b, "log_posterior") - score_matrix(results, g, "log_posterior")).ravel()
+        tb, tg = (float(taus[best_tau_index(scores[x])]) for x in (b, g))
+        gain = (score_matrix(results, b, "log_posterior") - score_matrix(results, b, "greedy_log_posterior")).ravel()
         row = {
+            "best_tau": [tb, tg],
+            "best_tau_at_grid_edge": [bool(t in (taus[0], taus[-1])) for t in (tb, tg)],
             "prob_better_score_best_tau": compare(scores[b], scores[g], "normal"),
             "prob_better_score_best_tau_t": compare(scores[b], scores[g], "t"),
-            "prob_better_nd_error_best_tau": compare(nd_b, nd_g, "normal"),
-            "prob_better_nd_error_best_tau_t": compare(nd_b, nd_g, "t"),
             "mean_score_x10^4.5": [float(scores[x][:, best_tau_index(scores[x])].mean() * 10**4.5) for x in (b, g)],
-            "mean_nd_abs_error_best": [float(n.mean(axis=0).min()) for n in (nd_b, nd_g)],
             "min_log_posterior_gain": float(gain.min()),
             "mean_log_posterior_gain": float(gain.mean()),
         }
+        settings = [("best_tau", tb, tg)]
         if len(poisson):
             pb = poisson[poisson["algorithm"] == b].sort_values("seed")
             pg = poisson[poisson["algorithm"] == g].sort_values("seed")
             row.update({
                 "prob_better_score_exact_s": prob_better(pb["score"].to_numpy() - pg["score"].to_numpy(), "normal"),
-                "prob_better_nd_error_exact_s": prob_better(pb["nd_abs_error"].to_numpy() - pg["nd_abs_error"].to_numpy(), "normal"),
                 "mean_score_exact_s_x10^4.5": [float(x["score"].mean() * 10**4.5) for x in (pb, pg)],
-                "mean_nd_abs_error_exact_s": [float(x["nd_abs_error"].mean()) for x in (pb, pg)],
-                "min_log_posterior_gain_exact_s": float((pb["log_posterior"].to_numpy() - pg["log_posterior"].to_numpy()).min()),
+                "min_log_posterior_gain_exact_s": float((pb["log_posterior"] - pb["greedy_log_posterior"]).min()),
             })
+            settings.append(("exact_s", float("nan"), float("nan")))
+        for name, t_b, t_g in settings:
+            err_g = _column_at(both, g, t_g, "nd_abs_error")
+            for suffix, column in [("", "nd_abs_error_bayes" if bayes else None), ("_map_count", "nd_abs_error")]:
+                if column is None:
+                    continue
+                err_b = _column_at(both, b, t_b, column)
+                row[f"prob_better_nd_error_{name}{suffix}"] = prob_better(err_b - err_g, "normal")
+                row[f"prob_better_nd_error_{name}{suffix}_t"] = prob_better(err_b - err_g, "t")
+                row[f"mean_nd_abs_error_{name}{suffix}"] = [float(err_b.mean()), float(err_g.mean())]
         out[v] = row
     if "UU" in out and "TT" in scores:
         best = {a: float(scores[a][:, best_tau_index(scores[a])].mean()) for a in ("UU", "UU batch", "TT")}
         gap = best["UU"] - best["TT"]
         out["UU"]["share_of_uu_tt_gap_closed"] = (best["UU"] - best["UU batch"]) / gap if gap else None
+        out["UU"]["prob_uu_batch_better_than_tt_greedy"] = compare(scores["UU batch"], scores["TT"], "normal")
     return out
 
 

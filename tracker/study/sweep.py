@@ -18,7 +18,13 @@ from tqdm.auto import tqdm
 
 from common.dask import using_client
 from pipeline.prior import TerrainPrior
-from tracker.study.experiment import ExperimentConfig, run_dataset, summarise, write_outputs
+from tracker.study.experiment import (
+    ExperimentConfig,
+    add_batch_nd,
+    run_dataset,
+    summarise,
+    write_outputs,
+)
 
 
 def _one_numba_thread() -> None:
@@ -40,7 +46,8 @@ def run_experiment_dask(
         rows: list[dict] = []
         for fut in tqdm(as_completed(futures), total=len(futures), desc="data sets", unit="set", disable=not progress):
             rows.extend(fut.result())
-    return pd.DataFrame(rows).sort_values(["seed", "variant", "tau"], kind="stable").reset_index(drop=True)
+        results = pd.DataFrame(rows).sort_values(["seed", "variant", "tau"], kind="stable").reset_index(drop=True)
+        return add_batch_nd(results, prior_path, config, lambda fn, seeds: client.gather(client.map(fn, seeds, pure=False)))
 
 
 def run_and_write_dask(

@@ -12,13 +12,11 @@ from pipeline.prior.terrain import TerrainPrior
 from tracker.study.calibration import (
     calibration_markdown,
     calibration_study,
-    expected_in_window,
     reliability,
     reliability_figure,
     simulate_model,
-    window_mask,
-    window_prior,
 )
+from tracker.study.experiment import expected_in_window, window_mask, window_prior
 from tracker.study.simulate import central_windows
 
 
@@ -39,6 +37,10 @@ def test_reliability_passes_calibrated_and_fails_miscalibrated_probabilities() -
         assert r["fraction_same"] == pytest.approx(r["p"] + 0.05, abs=0.01)
     bad = reliability(p, rng.random(p.size) < p**2)  # overconfident: true frequency below p
     assert not any(r["in_band"] for r in bad[3:8])
+    # SE over data sets: Σ same / Σ n per set, delta method; two sets of 4 pairs (3 and 1 same) → 0.25
+    rows = reliability(np.full(8, 0.55), np.array([1, 1, 1, 0, 1, 0, 0, 0], bool), groups=np.repeat([0, 1], 4))
+    assert rows[5]["fraction_same"] == 0.5 and rows[5]["std_error_sets"] == pytest.approx(np.sqrt(2 * 2 * 1.0**2) / 8)
+    assert rows[0]["std_error_sets"] is None and rows[5]["in_band"]
     assert reliability(np.array([0.95]), np.array([True]))[0] == {"p": 0.0, "n": 0, "fraction_same": None,
                                                                    "mean_prob": None, "std_error": None, "in_band": False}
 
@@ -47,7 +49,7 @@ def test_simulate_model_draws_from_the_model(prior: TerrainPrior) -> None:
     _, keep = central_windows(prior, 14000.0, 0.5)
     wp = window_prior(prior, keep)
     mask = window_mask(prior, keep)
-    assert wp.density[~mask].max() == 0.0 and wp.density.sum() * prior.grid.cell_area == pytest.approx(1.0)
+    assert wp.grid.bounds == pytest.approx(keep) and wp.density.sum() * wp.grid.cell_area == pytest.approx(1.0)
     counts = [len(simulate_model(wp, 7.0, 30, s).targets) for s in range(200)]
     assert np.mean(counts) == pytest.approx(7.0, abs=0.5) and np.var(counts) == pytest.approx(7.0, rel=0.3)
     sc = simulate_model(wp, 7.0, 30, 1)
@@ -59,11 +61,16 @@ def test_simulate_model_draws_from_the_model(prior: TerrainPrior) -> None:
 
 
 def test_small_calibration_study_and_figure(prior: TerrainPrior, tmp_path) -> None:
-    st = calibration_study(prior, 2, "model", n_targets=40, n_reports=25, burn_in=5, samples=20, split_merge=1)
-    assert st["pairs"] == sum(r["n"] for r in st["bins"]) > 0
-    assert st["bins_with_pairs"] >= st["bins_in_band"] >= 0
-    assert "| pairs |" in calibration_markdown(st)
-    path = reliability_figure([st], tmp_path / "rel.png")
+    studies = [calibration_study(prior, 2, design, n_targets=40, n_reports=25, burn_in=5, samples=20, split_merge=1)
+               for design in ("model", "paper", "paper-grid")]
+    for st in studies:
+        assert st["pairs"] == sum(r["n"] for r in st["bins"]) > 0
+        assert st["bins_with_pairs"] >= st["bins_in_band"] >= 0
+        assert "| pairs |" in calibration_markdown(st) and "SE over data sets" in calibration_markdown(st)
+    # "paper" and "paper-grid" associate the same data under r on the window and on the grid
+    assert studies[1]["pairs"] == studies[2]["pairs"]
+    assert [r["n"] for r in studies[1]["bins"]] != [r["n"] for r in studies[2]["bins"]]
+    path = reliability_figure(studies, tmp_path / "rel.png")
     assert path.stat().st_size > 1000
     with pytest.raises(ValueError, match="design"):
         calibration_study(prior, 1, "other")

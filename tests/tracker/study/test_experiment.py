@@ -19,14 +19,18 @@ from tracker.models.sfunc import ExpS, PoissonS
 from tracker.study.experiment import (
     CachedIntegrator,
     ExperimentConfig,
+    expected_in_window,
     parse_taus,
+    posterior_median,
     run_dataset,
     run_experiment,
     summarise,
+    window_mask,
+    window_prior,
     write_outputs,
 )
 from tracker.study.metrics import gospa, posterior_means, score
-from tracker.study.simulate import AirborneSensor, simulate
+from tracker.study.simulate import AirborneSensor, central_windows, simulate
 
 TAUS = (-4.0, -1.0, 2.0)
 
@@ -200,29 +204,105 @@ def test_rebuilt_prior_at_the_same_path_is_reread(tmp_path) -> None:
         _load_prior(str(tmp_path / "missing.tif"))
 
 
-def test_run_dataset_with_batch_matches_a_direct_batch_run(prior_path: str) -> None:
+@pytest.mark.parametrize("window", [False, True])
+def test_run_dataset_with_batch_matches_a_direct_batch_run(prior_path: str, window: bool) -> None:
     """``methods=("greedy", "batch")``: batch rows come from the batch MAP search started at greedy's
-    partition, score like a direct scoring of that partition, and never have a lower ln p(Λ|Z)."""
+    partition, under r over the grid or (``batch_window``) r restricted to the keep window; they score
+    like a direct scoring of that partition, and never have a lower ln p(Λ|Z) than greedy's partition
+    under the same model."""
     from tracker.association.batch import BatchAssociator, batch_estimate, log_posterior
 
     config = _config(taus=(-1.0,), variants=("UU", "TT"), methods=("greedy", "batch"), poisson_mu=150.0,
-                     batch_anneal=4, batch_restarts=0)
+                     batch_anneal=4, batch_restarts=0, batch_window=window)
     records = pd.DataFrame(run_dataset(prior_path, 5, config))
     assert set(records.algorithm) == {"UU", "TT", "UU batch", "TT batch"} and len(records) == 8
     prior = TerrainPrior.read(prior_path)
+    model = window_prior(prior, central_windows(prior, None, 0.5)[1]) if window else prior
     sc = simulate(prior, 5, config.n_targets, config.n_reports, config.region_m, config.keep_fraction, config.sensor)
     ref = perfect_estimate(prior, sc.reports)
     for _, rec in records[records.method == "batch"].iterrows():
         s_model = PoissonS(150.0) if rec.s_model == "poisson" else ExpS(rec.tau)
         g = associate(prior, sc.reports, rec.variant, s_model=s_model).assignments  # fresh: no shared cache
-        res = BatchAssociator(prior, rec.variant, s_model=s_model, anneal=4, restarts=0).fit(sc.reports, init=g)
-        est = batch_estimate(prior, sc.reports, res.labels, "UU")
+        on = g >= 0
+        if window and rec.variant == "TT":
+            on &= integrate(model, sc.reports.means, sc.reports.covs) > 0
+        kept = np.flatnonzero(on)
+        sub = sc.reports.subset(kept)
+        init = np.unique(g[kept], return_inverse=True)[1]
+        res = BatchAssociator(model, rec.variant, s_model=s_model, anneal=4, restarts=0).fit(sub, init=init)
+        est = batch_estimate(prior, sub, res.labels, "UU")
         expected = score(prior, est.means, est.covs, rec.variant != "UU", ref.means, ref.covs, True)
         assert rec.score == pytest.approx(expected, rel=1e-9, abs=1e-12)
         assert rec.nd_hat == res.n_detected
-        assert rec.log_posterior == pytest.approx(log_posterior(prior, sc.reports, res.labels, s_model, rec.variant), abs=1e-6)
-        greedy = records[(records.method == "greedy") & (records.variant == rec.variant) & (records.s_model == rec.s_model)]
-        assert rec.log_posterior >= greedy.log_posterior.iloc[0] - 1e-9
+        assert rec.log_posterior == pytest.approx(log_posterior(model, sub, res.labels, s_model, rec.variant), abs=1e-6)
+        assert rec.greedy_log_posterior == pytest.approx(log_posterior(model, sub, init, s_model, rec.variant), abs=1e-6)
+        assert rec.log_posterior >= rec.greedy_log_posterior - 1e-9
+        if not window:
+            greedy = records[(records.method == "greedy") & (records.variant == rec.variant) & (records.s_model == rec.s_model)]
+            assert rec.greedy_log_posterior == pytest.approx(greedy.log_posterior.iloc[0], abs=1e-9)
+
+
+def test_window_prior_is_r_restricted_to_the_window(prior_path: str) -> None:
+    """The design's model: r on the window's cells, renormalised there, on a grid that is the window
+    (so UU's uniform density is 1 / window area); μ = n × the window's share of the region's mass."""
+    from tracker.association.batch import log_posterior
+
+    prior = TerrainPrior.read(prior_path)
+    region, keep = central_windows(prior, None, 0.5)
+    wp = window_prior(prior, keep)
+    mask = window_mask(prior, keep)
+    assert wp.grid.bounds == pytest.approx(keep) and wp.grid.shape == (150, 150) and mask.sum() == 150 * 150
+    np.testing.assert_allclose(wp.density, prior.density[mask].reshape(150, 150) / (prior.density[mask].sum() * prior.grid.cell_area))
+    assert wp.density.sum() * wp.grid.cell_area == pytest.approx(1.0)
+    assert expected_in_window(prior, 200, None) == pytest.approx(200 * prior.density[mask].sum() / prior.density.sum())
+    # UU: one report alone has ln L = ln u, u = 1 / window area
+    rep = simulate(prior, 0, 10, 1, None, 0.5).reports
+    area = (keep[2] - keep[0]) * (keep[3] - keep[1])
+    assert area == 3000.0**2 and log_posterior(wp, rep, np.zeros(1, np.int64), ExpS(0.0), "UU") == pytest.approx(-np.log(area))
+    with pytest.raises(ValueError, match="no cell centre"):
+        window_prior(prior, (0.0, 0.0, 10.0, 10.0))
+
+
+def test_posterior_median() -> None:
+    assert posterior_median(np.array([3, 4, 5]), np.array([0.2, 0.3, 0.5])) == 4  # CDF reaches 1/2 at 4
+    assert posterior_median(np.array([3, 4, 5]), np.array([0.2, 0.31, 0.49])) == 4
+    assert posterior_median(np.array([3, 4, 5]), np.array([0.6, 0.3, 0.1])) == 3
+    assert posterior_median(np.array([7]), np.array([1.0])) == 7
+
+
+def test_batch_nd_is_the_posterior_median_at_the_best_tau_and_exact_s(prior_path: str) -> None:
+    """run_experiment adds batch's Bayes N̂_D (the posterior median of a sampler started at the MAP) at
+    each batch algorithm's best mean-Score τ and with the exact S, and nowhere else; summarise compares it."""
+    from tracker.association.batch import BatchAssociator
+
+    config = _config(n_datasets=2, taus=(-3.0, 0.0), variants=("UU", "UT", "TT"), methods=("greedy", "batch"),
+                     poisson_mu=150.0, batch_anneal=4, batch_restarts=0, batch_nd_samples=30, batch_nd_burn_in=5)
+    results = run_experiment(prior_path, config, workers=1, progress=False)
+    summary = summarise(results, config)
+    batch = results[results.method == "batch"]
+    assert results[results.method == "greedy"]["nd_hat_bayes"].isna().all()
+    for v in ("UU", "UT", "TT"):
+        best = summary["variants"][f"{v} batch"]["best_tau"]
+        rows = batch[batch.variant == v]
+        filled = rows[rows.nd_hat_bayes.notna()]
+        assert set(filled.tau.fillna(np.inf)) >= {best, np.inf} and (filled.s_model == "poisson").sum() == 2
+        at_best = filled[filled.tau == best].sort_values("seed")
+        d = summary["batch_vs_greedy"][v]
+        assert d["mean_nd_abs_error_best_tau"][0] == pytest.approx(at_best.nd_abs_error_bayes.mean())
+        np.testing.assert_array_equal(filled.nd_abs_error_bayes, (filled.nd_hat_bayes - filled.nd).abs())
+    # a direct sampler run from the MAP partition gives the same median
+    prior = TerrainPrior.read(prior_path)
+    model = window_prior(prior, central_windows(prior, None, 0.5)[1])
+    rec = batch[(batch.variant == "TT") & (batch.s_model == "poisson") & (batch.seed == 1)].iloc[0]
+    sc = simulate(prior, 1, config.n_targets, config.n_reports, config.region_m, config.keep_fraction, config.sensor)
+    g = associate(prior, sc.reports, "TT", s_model=PoissonS(150.0)).assignments
+    kept = np.flatnonzero((g >= 0) & (integrate(model, sc.reports.means, sc.reports.covs) > 0))
+    sub = sc.reports.subset(kept)
+    mapped = BatchAssociator(model, "TT", s_model=PoissonS(150.0), anneal=4, restarts=0).fit(
+        sub, init=np.unique(g[kept], return_inverse=True)[1])
+    res = BatchAssociator(model, "TT", s_model=PoissonS(150.0), mode="sample", burn_in=5, samples=30, split_merge=1,
+                          seed=1).fit(sub, init=mapped.labels)
+    assert rec.nd_hat_bayes == posterior_median(res.nd_values, res.nd_prob)
 
 
 def test_cli_experiment_with_methods(prior_path: str, tmp_path, capsys) -> None:
