@@ -7,8 +7,10 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import resource
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -209,11 +211,17 @@ def _likelihood(stack: FeatureStack, model: LikelihoodModel) -> np.ndarray:
     naming a table that alone zeroes the grid."""
     grid = stack.grid
     r = np.empty(grid.shape, dtype=np.float64)
-    for r0 in range(0, grid.height, BAND_ROWS):
+
+    def band(r0: int) -> None:
         rows = min(BAND_ROWS, grid.height - r0)
-        band = FeatureStack(grid.window_grid(r0, 0, rows, grid.width),
-                            {n: dataclasses.replace(f, values=f.values[r0 : r0 + rows]) for n, f in stack.features.items()})
-        r[r0 : r0 + rows] = model.evaluate(band)
+        window = FeatureStack(grid.window_grid(r0, 0, rows, grid.width),
+                              {n: dataclasses.replace(f, values=f.values[r0 : r0 + rows]) for n, f in stack.features.items()})
+        r[r0 : r0 + rows] = model.evaluate(window)
+
+    # bands are independent and numpy releases the GIL on them, so threads use every core; each band's
+    # arithmetic is the serial one, so r is the same bit for bit
+    with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+        list(pool.map(band, range(0, grid.height, BAND_ROWS)))
     if not r.any():  # name the culprit when one table alone zeroes the grid
         for name, term in model.terms.items():
             if not term(stack[name]).any():
