@@ -20,6 +20,7 @@ import math
 import numpy as np
 from numba import njit
 
+from tracker.association.cell_lists import relink, unlink
 from tracker.gating.exact import sym_d2_logdet
 
 _SLACK = 1e-6
@@ -92,25 +93,9 @@ def _cell(x: float, y: float, lo, cell: float, dims) -> int:
 
 
 @njit(cache=True)
-def _unlink(head, nxt, prv, cell_of, c: int) -> None:
-    k = cell_of[c]
-    if k < 0:
-        return
-    if prv[c] >= 0:
-        nxt[prv[c]] = nxt[c]
-    else:
-        head[k] = nxt[c]
-    if nxt[c] >= 0:
-        prv[nxt[c]] = prv[c]
-    nxt[c] = -1
-    prv[c] = -1
-    cell_of[c] = -1
-
-
-@njit(cache=True)
 def _remove(head, nxt, prv, cell_of, ids) -> None:
     for t in range(ids.size):
-        _unlink(head, nxt, prv, cell_of, ids[t])
+        unlink(head, nxt, prv, cell_of, ids[t])
 
 
 @njit(cache=True)
@@ -125,13 +110,7 @@ def _place(head, nxt, prv, cell_of, mean, lam, lam_max, ids, means, lams, lo, ce
         k = _cell(means[t, 0], means[t, 1], lo, cell, dims)
         if cell_of[c] == k:
             continue
-        _unlink(head, nxt, prv, cell_of, c)
-        nxt[c] = head[k]
-        prv[c] = -1
-        if head[k] >= 0:
-            prv[head[k]] = c
-        head[k] = c
-        cell_of[c] = k
+        relink(head, nxt, prv, cell_of, c, k)
 
 
 @njit(cache=True)

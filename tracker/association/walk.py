@@ -27,6 +27,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from tracker.association.cell_lists import relink
 from tracker.models.motion import MOTION_CV, cv_cov_entry, cv_mean_entry
 from tracker.models.sfunc import log_s_ratio_code
 
@@ -445,22 +446,8 @@ def grid_place(idx, Hm, Hc, hgrid):
         else:
             geo[5] = max(geo[5], lam)
             c = _cell_index(Hm[h, 0], x0, cell, nx) * int(ny) + _cell_index(Hm[h, 1], y0, cell, ny)
-        old = cell_of[h]
-        if old == c:
-            continue
-        if old >= 0:  # unlink
-            if prv[h] >= 0:
-                nxt[prv[h]] = nxt[h]
-            else:
-                head[old] = nxt[h]
-            if nxt[h] >= 0:
-                prv[nxt[h]] = prv[h]
-        prv[h] = -1
-        nxt[h] = head[c]
-        if head[c] >= 0:
-            prv[head[c]] = h
-        head[c] = h
-        cell_of[h] = c
+        if cell_of[h] != c:
+            relink(head, nxt, prv, cell_of, h, c)
 
 
 @njit(cache=True, inline="always")
