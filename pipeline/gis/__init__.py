@@ -12,6 +12,7 @@ _EXPORTS = {
     "LayerSpec": "layers",
     "LayerWarning": "layers",
     "VectorLayer": "layers",
+    "open_source": "layers",
     "read_dem": "layers",
     "read_raster": "layers",
     "read_vector": "layers",

@@ -118,7 +118,9 @@ def _restored_copy(path: Path) -> Iterator[Path]:
             pyogrio.set_gdal_config_options({"SHAPE_RESTORE_SHX": None})
 
 
-def _open_source(spec: LayerSpec) -> contextlib.AbstractContextManager[Path]:
+def open_source(spec: LayerSpec) -> contextlib.AbstractContextManager[Path]:
+    """The path to read ``spec`` from: the file itself, or with ``restore_index`` a shapefile's temporary
+    copy with its .shx rebuilt; a missing file is a :class:`LayerError` naming the layer."""
     if not spec.path.exists():
         raise LayerError(f"{_where(spec)}: file not found")
     if spec.restore_index and spec.path.suffix.lower() == ".shp":
@@ -156,7 +158,7 @@ def read_vector(spec: LayerSpec, grid: Grid, columns: list[str] | None = None) -
 
     ``columns``: attributes to keep (none by default). Empty layers and layers that miss the grid warn.
     """
-    with _open_source(spec) as path:
+    with open_source(spec) as path:
         try:
             available = [str(n) for n in pyogrio.list_layers(path)[:, 0]]
         except pyogrio.errors.DataSourceError as exc:

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from common.maps import LeafletMap, density_map
 from pipeline.config.region import RegionConfig
-from pipeline.gis.layers import _open_source
+from pipeline.gis import open_source
 from pipeline.prior.terrain import TerrainPrior
 
 LAYER_COLOURS = {"distance": "#222222", "water": "#1f78b4", "mask": "#8c564b"}
@@ -26,7 +26,7 @@ def add_region_layers(m: LeafletMap, config: RegionConfig) -> list[str]:
             if name in drawn:
                 continue
             spec = config.layers[name]
-            with _open_source(spec) as path:  # a restore_index shapefile is read from its repaired copy
+            with open_source(spec) as path:  # a restore_index shapefile is read from its repaired copy
                 m.add_vector_file(path, spec.layer, name, colour, fill=0.35 if feature.type == "mask" else 0.0,
                                   where=spec.where)
             drawn.append(name)
