@@ -39,7 +39,6 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
-import rasterio
 from distributed import Client, as_completed
 from rasterio.windows import Window
 from tqdm import tqdm
@@ -63,8 +62,6 @@ from pipeline.tiled.windows import DEFAULT_TILE, distance_caps, needed_features,
 
 STRIP_ROWS = 256
 """Rows per strip in pass 2 (one GeoTIFF block row)."""
-GDAL_CACHE_BYTES = 256 << 20
-"""GDAL block cache during pass 2 (bytes)."""
 
 
 # ------------------------------------------------------------------------------------ pass 1
@@ -179,9 +176,8 @@ def build_prior_tiled(
                 )
             n_support = sum(res["n_support"] for res in results)
             share = uniform_share(total_r, n_support, eps)
-            # GDAL's block cache defaults to 5% of RAM; pass 2 streams, so a small cache keeps the client small.
-            with rasterio.Env(GDAL_CACHEMAX=GDAL_CACHE_BYTES):
-                write_prior(out, config.grid, description, _prior_strips(r_store, total_r, config.grid, progress, share, n_support))
+            # write_prior caps GDAL's block cache itself (WRITE_CACHE_BYTES)
+            write_prior(out, config.grid, description, _prior_strips(r_store, total_r, config.grid, progress, share, n_support))
     t2 = time.perf_counter()
     per_worker: dict[str, dict] = {}
     for res in results:
