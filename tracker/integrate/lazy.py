@@ -92,6 +92,7 @@ class LazyPyramid:
         self._free = [s for s in range(self.n_slots, -1, -1) if s != MISSING]
         self._tiles: OrderedDict[tuple[int, int, int], np.ndarray] = OrderedDict()
         self._pinned: set[tuple[int, int, int]] = set()
+        self._pinned_blocks = 0  # pool slots the pinned tiles hold (at most)
         self._geometry: list[tuple[float, float, float, int, int, int, int]] = []  # s, h, origin, nu, nv, nbu, table offset
         self.slots = np.full(0, MISSING, np.int32)
         self.tiles_built = 0
@@ -161,7 +162,7 @@ class LazyPyramid:
         # Two consecutive levels' rectangles must fit beside the pinned tiles, or building one level
         # would evict the tiles below it that the next build reads (and rebuild them, again and again).
         sizes = [(v1 - v0 + 1) * (u1 - u0 + 1) * self.level_blocks(m) ** 2 for m, v0, v1, u0, u1 in plan]
-        need = max(a + b for a, b in zip(sizes, [*sizes[1:], 0], strict=True)) + self._pinned_blocks()
+        need = max(a + b for a, b in zip(sizes, [*sizes[1:], 0], strict=True)) + self._pinned_blocks
         if need > self.n_slots:
             raise MemoryError(f"LazyPyramid: a cache of {self.pool.nbytes / 2**20:.0f} MiB cannot hold the tiles one batch needs "
                               f"({need} blocks at once)")
@@ -176,10 +177,6 @@ class LazyPyramid:
                             self._build(m, a, b)
         finally:
             nb.set_num_threads(threads)
-
-    def _pinned_blocks(self) -> int:
-        """Pool slots held by the pinned tiles."""
-        return sum(self.level_blocks(key[0]) ** 2 for key in self._pinned)
 
     def _values(self, k: int, j0: int, j1: int, i0: int, i1: int) -> np.ndarray:
         """f_{s_k} (float64) at level k's nodes [j0, j1) x [i0, i1): cell sums, or the trapezoid rule on
@@ -360,13 +357,16 @@ class LazyPyramid:
             try:
                 for key in pins:
                     self.tile(*key)
-                    self._pinned.add(key)
+                    if key not in self._pinned:
+                        self._pinned.add(key)
+                        self._pinned_blocks += self.level_blocks(key[0]) ** 2
                 p = self.packed()
                 out[chunk] = np.nan  # stays NaN only if the kernel found a block missing
                 ss._kernel(field, ss.PHI_TABLE, p.coef, self.slots, p.scale, p.step, p.u0, p.v0, p.nu, p.nv, p.offset,
                            uc, vc, cuu, cuv, cvv, chunk, out, counts, nb.get_num_threads())
             finally:
                 self._pinned.clear()
+                self._pinned_blocks = 0
 
 
 def _tile_keys(k: int, lo_u, hi_u, lo_v, hi_v) -> np.ndarray:

@@ -191,8 +191,9 @@ def _box_weights(nodes: np.ndarray, n_cells: int, s: float) -> tuple[np.ndarray,
     """Banded weights ΔΦ, the mass of cell [i, i+1] under N(node, s²), over ±8 s: (start, (nodes, band))."""
     reach = int(np.ceil(8.0 * s)) + 1
     start, idx = _band(np.floor(nodes).astype(np.int64) - reach, n_cells, 2 * reach + 1)
-    x = nodes[:, None]
-    return start, ndtr((idx + 1 - x) / s) - ndtr((idx - x) / s)
+    # Φ at each cell edge once: the band's edges are idx and idx[:, -1] + 1
+    edges = ndtr((np.concatenate([idx, idx[:, -1:] + 1], axis=1) - nodes[:, None]) / s)
+    return start, edges[:, 1:] - edges[:, :-1]
 
 
 def _gauss_weights(nodes: np.ndarray, origin: float, n_src: int, d: float, h: float) -> tuple[np.ndarray, np.ndarray]:
@@ -269,13 +270,16 @@ levels come from the level below by the trapezoid rule. Cell sums make a level i
 levels below (a lazy tile of it reads cells only, within 8 s_k + 1 of its nodes)."""
 
 
+_TAPS = np.append(np.sqrt(3.0) * _POLE ** np.abs(np.arange(-FIR, FIR + 1)), 0.0)  # the last: off the band
+
+
 def fir_weights(first: int, last: int, n: int) -> tuple[np.ndarray, np.ndarray]:
     """Banded prefilter weights for the nodes [first, last) of a lattice axis of ``n`` nodes:
     (start, (nodes, band)) with weight √3·z^|i - node| on |i - node| <= FIR (0 off the band)."""
     nodes = np.arange(first, last)
     start, idx = _band(nodes - FIR, n, 2 * FIR + 1)
-    gap = np.abs(idx - nodes[:, None])
-    return start, np.where(gap <= FIR, np.sqrt(3.0) * _POLE ** gap.astype(np.float64), 0.0)
+    gap = idx - nodes[:, None] + FIR
+    return start, _TAPS[np.where((gap >= 0) & (gap <= 2 * FIR), gap, 2 * FIR + 1)]
 
 
 def _prefilter(values: np.ndarray) -> np.ndarray:
