@@ -52,6 +52,9 @@ GH_SPAN = 5.6
 leftover σ: bounds how far from its centre a Gaussian's look-ups fall."""
 _T = ss.TILE
 _BLOCK = ss.BLOCK
+BORDER = 1e-9
+"""Relative margin around S0 within which a Gaussian's smaller σ may fall on either side of the
+kernel's fine/pyramid test (its rounding): it is planned both ways."""
 MISSING = 0
 """The pool's slot that the block tables point at for a block not built (or evicted): all NaN, so a
 look-up there gives NaN (the kernel needs no test; the caller builds the tiles and asks again)."""
@@ -70,8 +73,9 @@ class LazyPyramid:
     """f_{s_k} = r ⊛ G_{s_k} on the lattices of :class:`~tracker.integrate.scalespace.Pyramid`,
     computed per tile on demand and cached in ``cache_bytes`` of float32 blocks (thread-safe).
 
-    ``source`` holds r per cell (:class:`CellSource`); ``squared`` integrates r² instead; a tile is ``blocks`` x ``blocks``
-    kernel blocks (:data:`SIDE` nodes a side by default). ``field``,
+    ``source`` holds r per cell (:class:`CellSource`); ``squared`` integrates r² instead; a tile of
+    levels 0-3 is ``blocks`` x ``blocks`` kernel blocks (:data:`SIDE` nodes a side by default), fewer
+    above (:meth:`level_blocks`). ``tiles_built`` and ``cells_read`` count the work so far. ``field``,
     the (H, W) float64 values (r or r²) in memory, serves Gaussians narrower than the finest level
     (smoothed on the fly from the cells, as the whole pyramid does); without it those are left to
     the caller (look-ups 0).
@@ -96,6 +100,7 @@ class LazyPyramid:
         self._geometry: list[tuple[float, float, float, int, int, int, int]] = []  # s, h, origin, nu, nv, nbu, table offset
         self.slots = np.full(0, MISSING, np.int32)
         self.tiles_built = 0
+        self.cells_read = 0
         self._lock = threading.RLock()
 
     # --- levels and tiles -------------------------------------------------------------------
@@ -116,6 +121,7 @@ class LazyPyramid:
     def _cells(self, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
         """The float64 values (r or r²) of cells [r0, r1) x [c0, c1)."""
         values = np.ascontiguousarray(self.source[r0:r1, c0:c1], dtype=np.float64)
+        self.cells_read += values.size
         return values * values if self.squared else values
 
     def level_blocks(self, k: int) -> int:
@@ -298,7 +304,9 @@ class LazyPyramid:
         with self._lock:
             self._grow(float(smin.max(initial=0.0)))
             order = np.argsort(keys)
-            fine = smin[order] < ss.S0
+            # The kernel's own test (λ₂ < S0², in its rounding) may go either way within 1e-9 of S0:
+            # such Gaussians count as fine here and get level-0 tiles planned (_tiles_of).
+            fine = smin[order] < ss.S0 * (1.0 + BORDER)
             if self.field is None and fine.any():
                 order = order[~fine]  # left to the caller: counts stay 0
             field = self.field if self.field is not None else np.zeros((1, 1))
@@ -318,7 +326,7 @@ class LazyPyramid:
         m, dd = 0.5 * (a + c), 0.5 * (a - c)
         rad = np.sqrt(dd * dd + b * b)
         lam1, lam2 = m + rad, np.maximum(m - rad, 0.0)
-        fine = lam2 < ss.S0 * ss.S0
+        fine = lam2 < (ss.S0 * (1.0 - BORDER)) ** 2  # surely finer than level 0 (the kernel's test, with a margin)
         top = len(self._geometry) - 1
         with np.errstate(divide="ignore"):
             k0 = np.floor(np.log(np.sqrt(lam2) / ss.S0) / np.log(ss.RATIO) + 1e-9)
