@@ -76,7 +76,8 @@ def _blocks(f, px) -> float:
 
 
 def _cone(pyr, sigma: float) -> dict:
-    """Cold cost of one round Gaussian of ``sigma`` cells at the centre of ``pyr``'s grid."""
+    """Cold cost of one round Gaussian of ``sigma`` cells at the centre of ``pyr``'s grid (each sigma
+    its own level: none of its tiles built before)."""
     b0, c0 = pyr.tiles_built, pyr.cells_read
     c = np.array([sigma * sigma])
     t = time.perf_counter()
@@ -95,7 +96,10 @@ def child(n: int, n_reports: int, clusters: list[int], cluster_cells: float, cac
     px_small = stream(small.grid.shape, n_reports, clusters[0], cluster_cells, seed=1)
     scalespace.integrate_pixels(small, *(a[:BLOCK] for a in px_small), False)  # compile, build its levels
     whole, _ = scalespace.integrate_pixels(small, *px_small, False)  # all levels the stream needs
-    whole_s = _blocks(lambda *a: scalespace.integrate_pixels(small, *a, False), px_small)
+    def whole_s() -> float:
+        return _blocks(lambda *a: scalespace.integrate_pixels(small, *a, False), px_small)
+
+    before = whole_s()
     field = np.asarray(small.density, dtype=np.float64)
     same = lazy.LazyPyramid(small.density, field=field, cache_bytes=int(cache_gib * 2**30))
     got = np.concatenate([same.integrate_pixels(*(a[lo : lo + BLOCK] for a in px_small))[0]
@@ -115,12 +119,17 @@ def child(n: int, n_reports: int, clusters: list[int], cluster_cells: float, cac
             built = pyr.tiles_built
             run["warm_per_s"] = n_reports / _blocks(pyr.integrate_pixels, px)
             run["tiles_rebuilt_warm"] = pyr.tiles_built - built
-            cone = [_cone(lazy.LazyPyramid(source, cache_bytes=1 << 30), s) for s in (4.0, 8.0)]
+            cold = lazy.LazyPyramid(source, cache_bytes=1 << 30)
+            _cone(cold, 2.0)  # its first call pays for the pool's first pages and the table set-up
+            cone = [_cone(cold, s) for s in (4.0, 8.0)]
         runs.append(run)
         del pyr
+    # The baseline's best of a run before and one after the lazy ones: the loaded machine's spikes
+    # then lower the ratios, never raise them.
+    after = whole_s()
     return {
         "n": n, "n_reports": n_reports, "cluster_cells": cluster_cells, "cache_gib": cache_gib,
-        "whole_small_per_s": n_reports / whole_s, "runs": runs, "cone": cone, "identity": identity,
+        "whole_small_per_s": n_reports / min(before, after), "whole_small_runs_per_s": [n_reports / before, n_reports / after], "runs": runs, "cone": cone, "identity": identity,
         "peak_rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
         "load_average": list(os.getloadavg()),
     }
@@ -146,7 +155,8 @@ def run(quick: bool = False) -> dict:
     table = [
         {"what": f"lazy pyramid {n:,}² prior, {n_reports:,} report Gaussians in {goal['clusters']} clusters (σ 20 cells) "
                  f"spread over the grid, first pass (tiles built)",
-         "value": f"{goal['cold_per_s']:,.0f}/s = {goal['ratio_cold']:.2f}x the whole 2,000² pyramid ({base:,.0f}/s, same run, {load}); "
+         "value": f"{goal['cold_per_s']:,.0f}/s = {goal['ratio_cold']:.2f}x the whole 2,000² pyramid ({base:,.0f}/s, best of "
+                  f"a run before and after, same process, {load}); "
                   f"{goal['tiles_built']:,} tiles, {goal['cells_read'] / 1e6:,.0f} M cells read; {out['peak_rss_gib']:.2f} GiB peak",
          "goal": ">= 0.5x, <= 4 GiB", "ok": bool(goal["ratio_cold"] >= GOAL_RATIO and ok_mem)},
         {"what": f"lazy pyramid {n:,}², the same stream again (tiles cached)",

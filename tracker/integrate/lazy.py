@@ -3,7 +3,7 @@
 :class:`~tracker.integrate.scalespace.Pyramid` builds every level of a whole prior in memory (~17
 float32 per cell: 40 GiB for 50,000² cells). :class:`LazyPyramid` keeps the same lattices (level k:
 nodes ``origin_k + h_k j``, :func:`~tracker.integrate.scalespace.lattice`) but computes their cubic
-B-spline coefficients per tile of :data:`SIDE` x :data:`SIDE` nodes when an integral first needs them,
+B-spline coefficients per tile (:data:`SIDE` nodes a side at levels 0-3, fewer above) when an integral first needs them,
 and keeps them in a fixed pool of :data:`~tracker.integrate.scalespace.TILE`-node blocks (the layout
 the kernel reads), evicting the least recently used tiles when the pool is full.
 
