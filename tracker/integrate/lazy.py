@@ -11,7 +11,7 @@ Why a tile equals the whole pyramid's nodes: a node of a level k < ``CELL_LEVELS
 is an exact sum over the cells within ±(8 s_k + 1) of it, a node of a higher level a trapezoid sum
 over the level-(k-1) node values within ±(10 d + 1) nodes (:func:`~tracker.integrate.scalespace._gauss_weights`),
 and a coefficient the finite prefilter over ±``FIR`` = 14 value nodes
-(:func:`~tracker.integrate.scalespace.fir_weights`). A tile reads exactly those cells or nodes, with the
+(:func:`~tracker.integrate.scalespace._fir_weights`). A tile reads exactly those cells or nodes, with the
 whole lattice's band starts and weights, so its sums are the same numbers in the same order: the
 coefficients, and the integrals from them, are the whole pyramid's bit for bit
 (tests/tracker/integrate/test_lazy.py).
@@ -138,7 +138,7 @@ class LazyPyramid:
         coefficients that tiles spanning nodes [lo, hi) store (their nodes with the one-before,
         two-after apron)."""
         n = self._geometry[k][4] if axis == 0 else self._geometry[k][3]
-        start, weights = ss.fir_weights(max(lo - 1, 0), min(hi + 2, n), n)
+        start, weights = ss._fir_weights(max(lo - 1, 0), min(hi + 2, n), n)
         return int(start[0]), int(start[-1]) + weights.shape[1]
 
     def _needs(self, k: int, lo: int, hi: int, axis: int) -> tuple[int, int]:
@@ -216,8 +216,8 @@ class LazyPyramid:
         # The tile's coefficient nodes with their aprons (av-1 .. av+side+1), within the lattice.
         r_lo, r_hi = max(av - 1, 0), min(av + side + 2, nv)
         c_lo, c_hi = max(au - 1, 0), min(au + side + 2, nu)
-        fsv, fwv = ss.fir_weights(r_lo, r_hi, nv)
-        fsu, fwu = ss.fir_weights(c_lo, c_hi, nu)
+        fsv, fwv = ss._fir_weights(r_lo, r_hi, nv)
+        fsu, fwu = ss._fir_weights(c_lo, c_hi, nu)
         w_v0, w_u0 = int(fsv[0]), int(fsu[0])
         values = self._values(k, w_v0, int(fsv[-1]) + fwv.shape[1], w_u0, int(fsu[-1]) + fwu.shape[1])
         coef = ss._separable(values, fsu - w_u0, fwu, fsv - w_v0, fwv).astype(np.float32)

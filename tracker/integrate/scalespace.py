@@ -13,9 +13,10 @@ trapezoid rule (spacing ≤ α s_k) along an eccentric major axis. f_s is smooth
 few lattice look-ups give an integral accurate to ~1e-4 whatever the spread: the cost depends on the
 eccentricity and on where the smaller σ falls between two levels, never on the spread.
 
-Levels k < CELL_LEVELS (s_k ≤ 16 cells) are exact: r is constant on cells, so f_{s_k} at a node is Σ_cells r · ΔΦ_u
-· ΔΦ_v. Each higher level k+1 comes from level k by the trapezoid rule on the lattice (f_{s_{k+1}} = f_{s_k} ⊛ G_d, d² = s_{k+1}² -
-s_k²), accurate to ~e^{-2π²γ² d²/(s_k²+d²)} because f_{s_k} is band-limited on the scale s_k.
+Levels k < CELL_LEVELS (s_k ≤ 16 cells) are exact: r is constant on cells, so f_{s_k} at a node
+is Σ_cells r · ΔΦ_u · ΔΦ_v. Each higher level k+1 comes from level k by the trapezoid rule on the
+lattice (f_{s_{k+1}} = f_{s_k} ⊛ G_d, d² = s_{k+1}² - s_k²), accurate to ~e^{-2π²γ² d²/(s_k²+d²)}
+because f_{s_k} is band-limited on the scale s_k.
 Lattices reach 7 s_k beyond the grid (the prior is zero off the grid; f_s there is below Φ(-7)).
 Coefficients come from a finite prefilter (:data:`FIR` taps a side), so each is local.
 Gaussians whose smaller σ is under s_0 are smoothed at that σ exactly, on the fly, from the cells
@@ -273,7 +274,7 @@ levels below (a lazy tile of it reads cells only, within 8 s_k + 1 of its nodes)
 _TAPS = np.append(np.sqrt(3.0) * _POLE ** np.abs(np.arange(-FIR, FIR + 1)), 0.0)  # the last: off the band
 
 
-def fir_weights(first: int, last: int, n: int) -> tuple[np.ndarray, np.ndarray]:
+def _fir_weights(first: int, last: int, n: int) -> tuple[np.ndarray, np.ndarray]:
     """Banded prefilter weights for the nodes [first, last) of a lattice axis of ``n`` nodes:
     (start, (nodes, band)) with weight √3·z^|i - node| on |i - node| <= FIR (0 off the band)."""
     nodes = np.arange(first, last)
@@ -286,7 +287,7 @@ def _prefilter(values: np.ndarray) -> np.ndarray:
     """Cubic B-spline coefficients (float32) interpolating the 2-D ``values`` of a whole lattice
     (to 1e-8, see :data:`FIR`), the lattice zero beyond its ends."""
     nv, nu = values.shape
-    return _separable(values, *fir_weights(0, nu, nu), *fir_weights(0, nv, nv)).astype(np.float32)
+    return _separable(values, *_fir_weights(0, nu, nu), *_fir_weights(0, nv, nv)).astype(np.float32)
 
 
 # --- quadrature rules -------------------------------------------------------------------------
