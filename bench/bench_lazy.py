@@ -5,14 +5,18 @@ Run: ``python -m bench.run [--quick] lazy``.
 The large prior is never written: its cells come from :class:`RepeatedTile`, one 2,048² synthetic
 tile (bench_terrace's prior pattern) read window by window as a mosaic of 50,000² cells (a 10 GB
 float32 raster if it were stored; its whole pyramid would take ~40 GiB). A stream of report Gaussians
-(σ 1-8 cells, eccentricity up to 3, any angle) from targets gathered in clusters spread over the whole
-square is integrated in blocks of 10,000, as the tracker sends them, in a child process whose peak RSS
-is the whole job's. Baseline in the same run: the whole in-memory pyramid on a 2,000² prior with the
-same Gaussians, its rate measured after its first call (pyramid built, as bench_terrace reports it).
+(σ 1-8 cells, eccentricity up to 3, any angle) from targets gathered in clusters (σ 20 cells) whose
+centres are uniform over the whole square is integrated in blocks of 10,000, as the tracker sends
+them, in a child process whose peak RSS is the whole job's. Baseline in the same run: the whole
+in-memory pyramid on a 2,000² prior with the same kind of stream, its rate measured after its first
+call (pyramid built, as bench_terrace reports it).
 
-Rows: the cold stream (every tile built on first use, included), the same stream again (tiles
-cached: the look-up cost alone), tiles built, peak memory. Goal: >= 50 % of the small-prior rate,
-<= 4 GiB peak.
+Rows: the goal stream (1 M reports in 100 clusters) cold (every tile built on first use, included)
+and again (tiles cached: the look-up cost alone); the same 1 M reports in fewer, denser clusters
+(the cold rate is set by the area the stream touches, see docs/terrace.md); the cold cost of one
+σ = 8 cell Gaussian (the dependency cone); and identity: the lazy pyramid against the whole one on
+the 2,000² prior, integral by integral. Goal: >= 50 % of the small-prior rate, <= 4 GiB peak,
+identical integrals.
 """
 
 from __future__ import annotations
@@ -71,30 +75,61 @@ def _blocks(f, px) -> float:
     return time.perf_counter() - t
 
 
-def child(n: int, n_reports: int, n_clusters: int, cluster_cells: float, cache_gib: float) -> dict:
-    """Both measurements in this process: the small whole pyramid, then the lazy one on the n² mosaic."""
+def _cone(pyr, sigma: float) -> dict:
+    """Cold cost of one round Gaussian of ``sigma`` cells at the centre of ``pyr``'s grid (each sigma
+    its own level: none of its tiles built before)."""
+    b0, c0 = pyr.tiles_built, pyr.cells_read
+    c = np.array([sigma * sigma])
+    t = time.perf_counter()
+    pyr.integrate_pixels(np.array([pyr.shape[1] / 2 + 0.3]), np.array([pyr.shape[0] / 2 + 0.7]), c, np.zeros(1), c)
+    return {"sigma_cells": sigma, "seconds": time.perf_counter() - t, "tiles": pyr.tiles_built - b0, "cells_read": pyr.cells_read - c0}
+
+
+def child(n: int, n_reports: int, clusters: list[int], cluster_cells: float, cache_gib: float) -> dict:
+    """All measurements in this process: the small whole pyramid, the identity check on it, then the
+    lazy one on the n² mosaic, one fresh pyramid per cluster count (the first is the goal stream)."""
     from bench.bench_terrace import synthetic_prior
     from tracker.integrate import lazy, scalespace
 
     tile = synthetic_prior(2048).density
     small = synthetic_prior(2000)
-    px_small = stream(small.grid.shape, n_reports, n_clusters, cluster_cells, seed=1)
+    px_small = stream(small.grid.shape, n_reports, clusters[0], cluster_cells, seed=1)
     scalespace.integrate_pixels(small, *(a[:BLOCK] for a in px_small), False)  # compile, build its levels
-    scalespace.integrate_pixels(small, *px_small, False)  # all levels the stream needs
-    whole_s = _blocks(lambda *a: scalespace.integrate_pixels(small, *a, False), px_small)
+    whole, _ = scalespace.integrate_pixels(small, *px_small, False)  # all levels the stream needs
+    def whole_s() -> float:
+        return _blocks(lambda *a: scalespace.integrate_pixels(small, *a, False), px_small)
+
+    before = whole_s()
+    field = np.asarray(small.density, dtype=np.float64)
+    same = lazy.LazyPyramid(small.density, field=field, cache_bytes=int(cache_gib * 2**30))
+    got = np.concatenate([same.integrate_pixels(*(a[lo : lo + BLOCK] for a in px_small))[0]
+                          for lo in range(0, n_reports, BLOCK)])
+    identity = {"n": n_reports, "differ": int((got != whole).sum()), "max_rel": float(np.max(np.abs(got - whole) / np.abs(whole).clip(1e-300)))}
+    del same, got
     source = RepeatedTile(tile, (n, n))
-    pyr = lazy.LazyPyramid(source, cache_bytes=int(cache_gib * 2**30))
-    pyr.integrate_pixels(*stream((4096, 4096), 1000, 4, cluster_cells, seed=2))  # compile (another corner's tiles)
-    built0 = pyr.tiles_built
-    px = stream((n, n), n_reports, n_clusters, cluster_cells)
-    cold_s = _blocks(pyr.integrate_pixels, px)
-    built = pyr.tiles_built - built0
-    warm_s = _blocks(pyr.integrate_pixels, px)
+    runs = []
+    for i, n_clusters in enumerate(clusters):
+        pyr = lazy.LazyPyramid(source, cache_bytes=int(cache_gib * 2**30))
+        pyr.integrate_pixels(*stream((4096, 4096), 1000, 4, cluster_cells, seed=2))  # compile (another corner's tiles)
+        built0, cells0 = pyr.tiles_built, pyr.cells_read
+        px = stream((n, n), n_reports, n_clusters, cluster_cells)
+        run = {"clusters": n_clusters, "cold_per_s": n_reports / _blocks(pyr.integrate_pixels, px),
+               "tiles_built": pyr.tiles_built - built0, "cells_read": pyr.cells_read - cells0}
+        if i == 0:
+            built = pyr.tiles_built
+            run["warm_per_s"] = n_reports / _blocks(pyr.integrate_pixels, px)
+            run["tiles_rebuilt_warm"] = pyr.tiles_built - built
+            cold = lazy.LazyPyramid(source, cache_bytes=1 << 30)
+            _cone(cold, 2.0)  # its first call pays for the pool's first pages and the table set-up
+            cone = [_cone(cold, s) for s in (4.0, 8.0)]
+        runs.append(run)
+        del pyr
+    # The baseline's best of a run before and one after the lazy ones: the loaded machine's spikes
+    # then lower the ratios, never raise them.
+    after = whole_s()
     return {
-        "n": n, "n_reports": n_reports, "n_clusters": n_clusters, "cluster_cells": cluster_cells,
-        "cache_gib": cache_gib, "levels": pyr.levels_built(),
-        "whole_small_per_s": n_reports / whole_s, "lazy_cold_per_s": n_reports / cold_s,
-        "lazy_warm_per_s": n_reports / warm_s, "tiles_built": built, "tiles_rebuilt_warm": pyr.tiles_built - built0 - built,
+        "n": n, "n_reports": n_reports, "cluster_cells": cluster_cells, "cache_gib": cache_gib,
+        "whole_small_per_s": n_reports / min(before, after), "whole_small_runs_per_s": [n_reports / before, n_reports / after], "runs": runs, "cone": cone, "identity": identity,
         "peak_rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
         "load_average": list(os.getloadavg()),
     }
@@ -102,28 +137,47 @@ def child(n: int, n_reports: int, n_clusters: int, cluster_cells: float, cache_g
 
 def run(quick: bool = False) -> dict:
     n, n_reports = (10_000, 100_000) if quick else (50_000, 1_000_000)
-    args = [str(n), str(n_reports), "100", "20", "2.0"]
+    clusters = "100,30,10"
+    args = [str(n), str(n_reports), clusters, "20", "2.0"]
     proc = subprocess.run([sys.executable, "-m", "bench.bench_lazy", *args], cwd=ROOT, capture_output=True, text=True,
                           check=False)
     if proc.returncode != 0:
         raise RuntimeError(f"lazy-pyramid child failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
     out = json.loads(proc.stdout.strip().splitlines()[-1])
-    cold, warm = out["lazy_cold_per_s"] / out["whole_small_per_s"], out["lazy_warm_per_s"] / out["whole_small_per_s"]
-    out.update(ratio_cold=cold, ratio_warm=warm, goal_ratio=GOAL_RATIO, goal_gib=GOAL_GIB)
+    base = out["whole_small_per_s"]
+    for r in out["runs"]:
+        r["ratio_cold"] = r["cold_per_s"] / base
+    goal = out["runs"][0]
+    goal["ratio_warm"] = goal["warm_per_s"] / base
+    out.update(goal_ratio=GOAL_RATIO, goal_gib=GOAL_GIB)
     ok_mem = out["peak_rss_gib"] <= GOAL_GIB
-    where = f"{out['n_clusters']} clusters (σ {out['cluster_cells']:.0f} cells) spread over the grid"
+    load = f"load {out['load_average'][0]:.1f}"
     table = [
-        {"what": f"lazy pyramid {n:,}² prior, {n_reports:,} report Gaussians in {where}, first pass (tiles built)",
-         "value": f"{out['lazy_cold_per_s']:,.0f}/s = {cold:.2f}x the whole 2,000² pyramid ({out['whole_small_per_s']:,.0f}/s); "
-                  f"{out['tiles_built']:,} tiles; {out['peak_rss_gib']:.2f} GiB peak",
-         "goal": ">= 0.5x, <= 4 GiB", "ok": bool(cold >= GOAL_RATIO and ok_mem)},
+        {"what": f"lazy pyramid {n:,}² prior, {n_reports:,} report Gaussians in {goal['clusters']} clusters (σ 20 cells) "
+                 f"spread over the grid, first pass (tiles built)",
+         "value": f"{goal['cold_per_s']:,.0f}/s = {goal['ratio_cold']:.2f}x the whole 2,000² pyramid ({base:,.0f}/s, best of "
+                  f"a run before and after, same process, {load}); "
+                  f"{goal['tiles_built']:,} tiles, {goal['cells_read'] / 1e6:,.0f} M cells read; {out['peak_rss_gib']:.2f} GiB peak",
+         "goal": ">= 0.5x, <= 4 GiB", "ok": bool(goal["ratio_cold"] >= GOAL_RATIO and ok_mem)},
         {"what": f"lazy pyramid {n:,}², the same stream again (tiles cached)",
-         "value": f"{out['lazy_warm_per_s']:,.0f}/s = {warm:.2f}x the whole pyramid; {out['tiles_rebuilt_warm']} rebuilt",
-         "goal": ">= 0.5x, <= 4 GiB", "ok": bool(warm >= GOAL_RATIO and ok_mem)},
+         "value": f"{goal['warm_per_s']:,.0f}/s = {goal['ratio_warm']:.2f}x the whole pyramid; {goal['tiles_rebuilt_warm']} rebuilt",
+         "goal": ">= 0.5x, <= 4 GiB", "ok": bool(goal["ratio_warm"] >= GOAL_RATIO and ok_mem)},
     ]
+    for r in out["runs"][1:]:
+        table.append({"what": f"lazy pyramid {n:,}², the {n_reports:,} reports in {r['clusters']} clusters, first pass",
+                      "value": f"{r['cold_per_s']:,.0f}/s = {r['ratio_cold']:.2f}x; {r['tiles_built']:,} tiles, "
+                               f"{r['cells_read'] / 1e6:,.0f} M cells read", "goal": ">= 0.5x", "ok": bool(r["ratio_cold"] >= GOAL_RATIO)})
+    for c in out["cone"]:
+        table.append({"what": f"one σ = {c['sigma_cells']:.0f} cell Gaussian on a cold {n:,}² lazy pyramid (the dependency cone)",
+                      "value": f"{c['seconds'] * 1e3:,.0f} ms, {c['tiles']} tiles, {c['cells_read'] / 1e6:.2f} M cells read",
+                      "goal": "-", "ok": True})
+    ident = out["identity"]
+    table.append({"what": f"lazy = whole pyramid on the 2,000² prior ({ident['n']:,} integrals of the stream)",
+                  "value": f"{ident['differ']} differ (largest relative difference {ident['max_rel']:.1e})",
+                  "goal": "identical", "ok": ident["differ"] == 0})
     return {"lazy": out, "table": table}
 
 
 if __name__ == "__main__":
     n, reports, clusters, cells, cache = sys.argv[1:6]
-    print(json.dumps(child(int(n), int(reports), int(clusters), float(cells), float(cache))))
+    print(json.dumps(child(int(n), int(reports), [int(c) for c in clusters.split(",")], float(cells), float(cache))))

@@ -3,24 +3,25 @@
 :class:`~tracker.integrate.scalespace.Pyramid` builds every level of a whole prior in memory (~17
 float32 per cell: 40 GiB for 50,000² cells). :class:`LazyPyramid` keeps the same lattices (level k:
 nodes ``origin_k + h_k j``, :func:`~tracker.integrate.scalespace.lattice`) but computes their cubic
-B-spline coefficients per tile of :data:`SIDE` x :data:`SIDE` nodes when an integral first needs them,
+B-spline coefficients per tile (:data:`SIDE` nodes a side at levels 0-3, fewer above) when an integral first needs them,
 and keeps them in a fixed pool of :data:`~tracker.integrate.scalespace.TILE`-node blocks (the layout
 the kernel reads), evicting the least recently used tiles when the pool is full.
 
-Why a tile equals the whole pyramid's nodes: a node of level 0 is an exact sum over the cells within
-±(8 s_0 + 1) of it, and a node of level k > 0 a trapezoid sum over the level-(k-1) node values within
-±(10 d + 1) nodes (:func:`~tracker.integrate.scalespace._gauss_weights`); a tile reads exactly those
-cells or nodes, with the whole lattice's band starts and weights, so the sums are the same numbers in
-the same order. The only non-local step is the B-spline prefilter, a recursive filter with pole
-z = √3 - 2 run along whole lattice rows: a tile prefilters its nodes with :data:`HALO` nodes more on
-each side (or up to the lattice's mirrored end), and the start-up there reaches the tile damped by
-|z|^HALO = 1e-23 of the level's largest value, far below float32 rounding. So coefficients, and the
-integrals from them, are the whole pyramid's (tests/tracker/integrate/test_lazy.py checks that they are
-equal to 1e-12 of the field's maximum, and bit-identical in nearly every case).
+Why a tile equals the whole pyramid's nodes: a node of a level k < ``CELL_LEVELS`` (s_k <= 16 cells)
+is an exact sum over the cells within ±(8 s_k + 1) of it, a node of a higher level a trapezoid sum
+over the level-(k-1) node values within ±(10 d + 1) nodes (:func:`~tracker.integrate.scalespace._gauss_weights`),
+and a coefficient the finite prefilter over ±``FIR`` = 14 value nodes
+(:func:`~tracker.integrate.scalespace._fir_weights`). A tile reads exactly those cells or nodes, with the
+whole lattice's band starts and weights, so its sums are the same numbers in the same order: the
+coefficients, and the integrals from them, are the whole pyramid's bit for bit
+(tests/tracker/integrate/test_lazy.py).
 
-A tile of level k needs level k-1 on its extent plus ~55 nodes, so the tiles under a Gaussian are built
-from the levels below, each once while it stays cached. The cost is per tile touched, not per cell of
-the prior: streams that cover a small part of a large prior pay for that part only. Units as in
+The dependency cone: a tile of a cell level needs only cells (its extent plus 14 h_k + 8 s_k a side);
+a tile above the cell levels needs the level below on its extent plus ~34 nodes a side, down to the
+16-cell level. Tiles hold 256 nodes a side up to level 3 and fewer above (``blocks >> (k // 4)``
+kernel blocks, at least one), so a tile covers 128-215 cells a side up to s = 16 cells and the
+cells a cold tile reads stay near the area a stream touches. Cost is per tile touched, not per
+cell of the prior. Units as in
 :mod:`tracker.integrate.scalespace` (pixels; values in the prior's units).
 """
 
@@ -37,15 +38,13 @@ import numpy as np
 from pipeline.prior import TerrainPrior
 from tracker.integrate import scalespace as ss
 
-__all__ = ["BLOCKS", "CACHE_BYTES", "HALO", "SIDE", "CellSource", "LazyPyramid", "lazy_pyramid"]
+__all__ = ["BLOCKS", "CACHE_BYTES", "SIDE", "CellSource", "LazyPyramid", "lazy_pyramid"]
 
 BLOCKS = 8
-"""Kernel blocks (:data:`~tracker.integrate.scalespace.TILE` nodes) per tile side."""
+"""Kernel blocks (:data:`~tracker.integrate.scalespace.TILE` nodes) per tile side at levels 0-3; levels
+4-7 have half as many, 8-11 a quarter, and so on down to one (see :meth:`LazyPyramid.level_blocks`)."""
 SIDE = BLOCKS * ss.TILE
-"""Nodes per tile side (256: 128 cells at level 0, 1.3 MB of its float64 temporaries)."""
-HALO = 40
-"""Extra nodes each side a tile is prefiltered over: the recursive filter's start-up is damped by
-|√3 - 2|^40 = 1.4e-23 where the tile begins."""
+"""Nodes per tile side at level 0 (256: 128 cells, 1.3 MB of its float64 temporaries)."""
 CACHE_BYTES = 1 << 30
 """Default size of the block pool, bytes (3,400 tiles of 256² nodes)."""
 GH_SPAN = 5.6
@@ -53,6 +52,9 @@ GH_SPAN = 5.6
 leftover σ: bounds how far from its centre a Gaussian's look-ups fall."""
 _T = ss.TILE
 _BLOCK = ss.BLOCK
+BORDER = 1e-9
+"""Relative margin around S0 within which a Gaussian's smaller σ may fall on either side of the
+kernel's fine/pyramid test (its rounding): it is planned both ways."""
 MISSING = 0
 """The pool's slot that the block tables point at for a block not built (or evicted): all NaN, so a
 look-up there gives NaN (the kernel needs no test; the caller builds the tiles and asks again)."""
@@ -71,8 +73,9 @@ class LazyPyramid:
     """f_{s_k} = r ⊛ G_{s_k} on the lattices of :class:`~tracker.integrate.scalespace.Pyramid`,
     computed per tile on demand and cached in ``cache_bytes`` of float32 blocks (thread-safe).
 
-    ``source`` holds r per cell (:class:`CellSource`); ``squared`` integrates r² instead; a tile is ``blocks`` x ``blocks``
-    kernel blocks (:data:`SIDE` nodes a side by default). ``field``,
+    ``source`` holds r per cell (:class:`CellSource`); ``squared`` integrates r² instead; a tile of
+    levels 0-3 is ``blocks`` x ``blocks`` kernel blocks (:data:`SIDE` nodes a side by default), fewer
+    above (:meth:`level_blocks`). ``tiles_built`` and ``cells_read`` count the work so far. ``field``,
     the (H, W) float64 values (r or r²) in memory, serves Gaussians narrower than the finest level
     (smoothed on the fly from the cells, as the whole pyramid does); without it those are left to
     the caller (look-ups 0).
@@ -87,16 +90,17 @@ class LazyPyramid:
         self.squared = squared
         self.field = field
         self.blocks = int(blocks)
-        self.side = self.blocks * _T
         self.n_slots = max(int(cache_bytes) // (4 * _BLOCK) - 1, 4 * self.blocks**2)  # besides MISSING
         self.pool = np.zeros((self.n_slots + 1, _BLOCK), np.float32)
         self.pool[MISSING] = np.nan
         self._free = [s for s in range(self.n_slots, -1, -1) if s != MISSING]
         self._tiles: OrderedDict[tuple[int, int, int], np.ndarray] = OrderedDict()
         self._pinned: set[tuple[int, int, int]] = set()
+        self._pinned_blocks = 0  # pool slots the pinned tiles hold (at most)
         self._geometry: list[tuple[float, float, float, int, int, int, int]] = []  # s, h, origin, nu, nv, nbu, table offset
         self.slots = np.full(0, MISSING, np.int32)
         self.tiles_built = 0
+        self.cells_read = 0
         self._lock = threading.RLock()
 
     # --- levels and tiles -------------------------------------------------------------------
@@ -117,37 +121,57 @@ class LazyPyramid:
     def _cells(self, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
         """The float64 values (r or r²) of cells [r0, r1) x [c0, c1)."""
         values = np.ascontiguousarray(self.source[r0:r1, c0:c1], dtype=np.float64)
+        self.cells_read += values.size
         return values * values if self.squared else values
 
+    def level_blocks(self, k: int) -> int:
+        """Kernel blocks per tile side at level k: ``blocks`` halved every 4 levels (one octave), at least
+        one, so tiles cover about the same cells (16 s_k cells a block) up to where they reach one block."""
+        return max(1, self.blocks >> (k // 4))
+
+    def _side(self, k: int) -> int:
+        """Nodes per tile side at level k."""
+        return self.level_blocks(k) * _T
+
+    def _value_span(self, k: int, lo: int, hi: int, axis: int) -> tuple[int, int]:
+        """The level-k value nodes [w0, w1) on ``axis`` (0 rows, 1 columns) whose prefilter gives the
+        coefficients that tiles spanning nodes [lo, hi) store (their nodes with the one-before,
+        two-after apron)."""
+        n = self._geometry[k][4] if axis == 0 else self._geometry[k][3]
+        start, weights = ss._fir_weights(max(lo - 1, 0), min(hi + 2, n), n)
+        return int(start[0]), int(start[-1]) + weights.shape[1]
+
     def _needs(self, k: int, lo: int, hi: int, axis: int) -> tuple[int, int]:
-        """The level-(k-1) coefficient nodes [c0, c1) on ``axis`` (0 rows, 1 columns) that a tile of level
-        k > 0 spanning nodes [lo, hi) reads (its prefilter halo, the smoothing band, one node for node values)."""
+        """The level-(k-1) coefficient nodes [c0, c1) on ``axis`` that the values of level k >= CELL_LEVELS
+        at nodes [lo, hi) read (the smoothing band, and one node more each side for node values)."""
         s, h, origin, nu, nv = self._geometry[k][:5]
         ps, ph, po, pnu, pnv = self._geometry[k - 1][:5]
-        n, pn = (nv, pnv) if axis == 0 else (nu, pnu)
-        ends = origin + h * np.array([max(lo - HALO, 0), min(hi + HALO, n) - 1])
+        pn = pnv if axis == 0 else pnu
+        ends = origin + h * np.array([lo, hi - 1])
         start, weights = ss._gauss_weights(ends, po, pn, np.sqrt(s * s - ps * ps), ph)
         return max(int(start[0]) - 1, 0), min(int(start[1]) + weights.shape[1] + 1, pn)
 
     def _prepare(self, k: int, tv: int, tu: int) -> None:
         """Build tile (tv, tu) of level k after the tiles below it that are missing, lowest level first:
-        each is then built once, not once per tile above it that reads it."""
+        each is then built once, not once per tile above it that reads it. Tiles of the cell levels
+        read cells only."""
         plan = [(k, tv, tv, tu, tu)]
-        while plan[-1][0] > 0:
+        while plan[-1][0] >= ss.CELL_LEVELS:
             m, v0, v1, u0, u1 = plan[-1]
-            j0, j1 = self._needs(m, v0 * self.side, (v1 + 1) * self.side, 0)
-            i0, i1 = self._needs(m, u0 * self.side, (u1 + 1) * self.side, 1)
-            below = (m - 1, j0 // self.side, (j1 - 1) // self.side, i0 // self.side, (i1 - 1) // self.side)
+            side, below_side = self._side(m), self._side(m - 1)
+            j0, j1 = self._needs(m, *self._value_span(m, v0 * side, (v1 + 1) * side, 0), 0)
+            i0, i1 = self._needs(m, *self._value_span(m, u0 * side, (u1 + 1) * side, 1), 1)
+            below = (m - 1, j0 // below_side, (j1 - 1) // below_side, i0 // below_side, (i1 - 1) // below_side)
             if all((below[0], a, b) in self._tiles for a in range(below[1], below[2] + 1) for b in range(below[3], below[4] + 1)):
                 break
             plan.append(below)
         # Two consecutive levels' rectangles must fit beside the pinned tiles, or building one level
         # would evict the tiles below it that the next build reads (and rebuild them, again and again).
-        sizes = [(v1 - v0 + 1) * (u1 - u0 + 1) for _, v0, v1, u0, u1 in plan]
-        need = max(a + b for a, b in zip(sizes, [*sizes[1:], 0], strict=True)) + len(self._pinned)
-        if need * self.blocks**2 > self.n_slots:
+        sizes = [(v1 - v0 + 1) * (u1 - u0 + 1) * self.level_blocks(m) ** 2 for m, v0, v1, u0, u1 in plan]
+        need = max(a + b for a, b in zip(sizes, [*sizes[1:], 0], strict=True)) + self._pinned_blocks
+        if need > self.n_slots:
             raise MemoryError(f"LazyPyramid: a cache of {self.pool.nbytes / 2**20:.0f} MiB cannot hold the tiles one batch needs "
-                              f"({need} tiles of {self.blocks**2} blocks at once)")
+                              f"({need} blocks at once)")
         threads = nb.get_num_threads()
         # A tile's kernels take ~50 µs on one thread; a parallel launch can cost more than that on busy cores.
         nb.set_num_threads(1)
@@ -160,46 +184,55 @@ class LazyPyramid:
         finally:
             nb.set_num_threads(threads)
 
-    def _build(self, k: int, tv: int, tu: int) -> None:
-        """Coefficients of tile (tv, tu) of level k, into free blocks of the pool."""
-        s, h, origin, nu, nv, nbu, toff = self._geometry[k]
-        av, au = tv * self.side, tu * self.side
-        ev0, ev1 = max(av - HALO, 0), min(av + self.side + HALO, nv)
-        eu0, eu1 = max(au - HALO, 0), min(au + self.side + HALO, nu)
-        u = origin + h * np.arange(eu0, eu1)
-        v = origin + h * np.arange(ev0, ev1)
-        if k == 0:
+    def _values(self, k: int, j0: int, j1: int, i0: int, i1: int) -> np.ndarray:
+        """f_{s_k} (float64) at level k's nodes [j0, j1) x [i0, i1): cell sums, or the trapezoid rule on
+        the level below, with the whole lattice's band starts and weights."""
+        s, h, origin = self._geometry[k][:3]
+        u = origin + h * np.arange(i0, i1)
+        v = origin + h * np.arange(j0, j1)
+        if k < ss.CELL_LEVELS:
             su, wu = ss._box_weights(u, self.shape[1], s)
             sv, wv = ss._box_weights(v, self.shape[0], s)
             c0, r0 = int(su.min()), int(sv.min())
             cells = self._cells(r0, int(sv.max()) + wv.shape[1], c0, int(su.max()) + wu.shape[1])
-            values = ss._separable(cells, su - c0, wu, sv - r0, wv)
-        else:
-            ps, ph, po, pnu, pnv = self._geometry[k - 1][:5]
-            d = np.sqrt(s * s - ps * ps)
-            su, wu = ss._gauss_weights(u, po, pnu, d, ph)
-            sv, wv = ss._gauss_weights(v, po, pnv, d, ph)
-            i0, i1 = int(su.min()), int(su.max()) + wu.shape[1]
-            j0, j1 = int(sv.min()), int(sv.max()) + wv.shape[1]
-            # node values need one coefficient beyond each end (or the lattice's mirrored end)
-            (cj0, cj1), (ci0, ci1) = self._needs(k, av, av + self.side, 0), self._needs(k, au, au + self.side, 1)
-            nodes = ss._node_values(self.window(k - 1, cj0, cj1, ci0, ci1))[j0 - cj0 : j1 - cj0, i0 - ci0 : i1 - ci0]
-            values = ss._separable(np.ascontiguousarray(nodes), su - i0, wu, sv - j0, wv)
-        coef = ss._prefilter(values)
-        # The tile's blocks with their aprons (node rows av-1 .. av+self.side+1), zeros beyond the lattice (as _tile).
-        padded = np.zeros((self.side + 3, self.side + 3), np.float32)
-        r_lo, r_hi = max(av - 1, 0), min(av + self.side + 2, nv)
-        c_lo, c_hi = max(au - 1, 0), min(au + self.side + 2, nu)
-        padded[r_lo - av + 1 : r_hi - av + 1, c_lo - au + 1 : c_hi - au + 1] = coef[r_lo - ev0 : r_hi - ev0, c_lo - eu0 : c_hi - eu0]
-        blocks = np.lib.stride_tricks.sliding_window_view(padded, (ss.TILE + 3, ss.TILE + 3))[:: ss.TILE, :: ss.TILE]
+            return ss._separable(cells, su - c0, wu, sv - r0, wv)
+        ps, ph, po, pnu, pnv = self._geometry[k - 1][:5]
+        d = np.sqrt(s * s - ps * ps)
+        su, wu = ss._gauss_weights(u, po, pnu, d, ph)
+        sv, wv = ss._gauss_weights(v, po, pnv, d, ph)
+        a0, a1 = int(su.min()), int(su.max()) + wu.shape[1]
+        b0, b1 = int(sv.min()), int(sv.max()) + wv.shape[1]
+        # node values need one coefficient beyond each end (or the lattice's mirrored end)
+        (cj0, cj1), (ci0, ci1) = self._needs(k, j0, j1, 0), self._needs(k, i0, i1, 1)
+        nodes = ss._node_values(self.window(k - 1, cj0, cj1, ci0, ci1))[b0 - cj0 : b1 - cj0, a0 - ci0 : a1 - ci0]
+        return ss._separable(np.ascontiguousarray(nodes), su - a0, wu, sv - b0, wv)
+
+    def _build(self, k: int, tv: int, tu: int) -> None:
+        """Coefficients of tile (tv, tu) of level k, into free blocks of the pool."""
+        s, h, origin, nu, nv, nbu, toff = self._geometry[k]
+        blocks = self.level_blocks(k)
+        side = blocks * _T
+        av, au = tv * side, tu * side
+        # The tile's coefficient nodes with their aprons (av-1 .. av+side+1), within the lattice.
+        r_lo, r_hi = max(av - 1, 0), min(av + side + 2, nv)
+        c_lo, c_hi = max(au - 1, 0), min(au + side + 2, nu)
+        fsv, fwv = ss._fir_weights(r_lo, r_hi, nv)
+        fsu, fwu = ss._fir_weights(c_lo, c_hi, nu)
+        w_v0, w_u0 = int(fsv[0]), int(fsu[0])
+        values = self._values(k, w_v0, int(fsv[-1]) + fwv.shape[1], w_u0, int(fsu[-1]) + fwu.shape[1])
+        coef = ss._separable(values, fsu - w_u0, fwu, fsv - w_v0, fwv).astype(np.float32)
+        # The blocks with their aprons, zeros beyond the lattice (as _tile).
+        padded = np.zeros((side + 3, side + 3), np.float32)
+        padded[r_lo - av + 1 : r_hi - av + 1, c_lo - au + 1 : c_hi - au + 1] = coef
+        tiles = np.lib.stride_tricks.sliding_window_view(padded, (ss.TILE + 3, ss.TILE + 3))[:: ss.TILE, :: ss.TILE]
         nbv = -(-nv // ss.TILE)
-        gbv = tv * self.blocks + np.arange(self.blocks)
-        gbu = tu * self.blocks + np.arange(self.blocks)
+        gbv = tv * blocks + np.arange(blocks)
+        gbu = tu * blocks + np.arange(blocks)
         keep_v, keep_u = np.flatnonzero(gbv < nbv), np.flatnonzero(gbu < nbu)
         n = keep_v.size * keep_u.size
         self._make_room(n)
         slots = np.array([self._free.pop() for _ in range(n)], np.int32)
-        self.pool[slots] = blocks[np.ix_(keep_v, keep_u)].reshape(n, _BLOCK)
+        self.pool[slots] = tiles[np.ix_(keep_v, keep_u)].reshape(n, _BLOCK)
         table = toff + (gbv[keep_v][:, None] * nbu + gbu[keep_u][None, :]).ravel()
         self.slots[table] = slots
         self._tiles[(k, tv, tu)] = table
@@ -234,10 +267,11 @@ class LazyPyramid:
         """Level k's coefficients at nodes [j0, j1) x [i0, i1) of its lattice (float32), from its tiles."""
         with self._lock:
             out = np.empty((j1 - j0, i1 - i0), np.float32)
-            for tv in range(j0 // self.side, (j1 - 1) // self.side + 1):
-                for tu in range(i0 // self.side, (i1 - 1) // self.side + 1):
+            side, blocks = self._side(k), self.level_blocks(k)
+            for tv in range(j0 // side, (j1 - 1) // side + 1):
+                for tu in range(i0 // side, (i1 - 1) // side + 1):
                     self.tile(k, tv, tu)
-                    _copy_blocks(self.pool, self.slots, self._geometry[k][6], self._geometry[k][5], self.blocks, tv, tu, j0, j1, i0, i1, out)
+                    _copy_blocks(self.pool, self.slots, self._geometry[k][6], self._geometry[k][5], blocks, tv, tu, j0, j1, i0, i1, out)
             return out
 
     def levels_built(self) -> int:
@@ -270,7 +304,9 @@ class LazyPyramid:
         with self._lock:
             self._grow(float(smin.max(initial=0.0)))
             order = np.argsort(keys)
-            fine = smin[order] < ss.S0
+            # The kernel's own test (λ₂ < S0², in its rounding) may go either way within 1e-9 of S0:
+            # such Gaussians count as fine here and get level-0 tiles planned (_tiles_of).
+            fine = smin[order] < ss.S0 * (1.0 + BORDER)
             if self.field is None and fine.any():
                 order = order[~fine]  # left to the caller: counts stay 0
             field = self.field if self.field is not None else np.zeros((1, 1))
@@ -290,7 +326,7 @@ class LazyPyramid:
         m, dd = 0.5 * (a + c), 0.5 * (a - c)
         rad = np.sqrt(dd * dd + b * b)
         lam1, lam2 = m + rad, np.maximum(m - rad, 0.0)
-        fine = lam2 < ss.S0 * ss.S0
+        fine = lam2 < (ss.S0 * (1.0 - BORDER)) ** 2  # surely finer than level 0 (the kernel's test, with a margin)
         top = len(self._geometry) - 1
         with np.errstate(divide="ignore"):
             k0 = np.floor(np.log(np.sqrt(lam2) / ss.S0) / np.log(ss.RATIO) + 1e-9)
@@ -305,22 +341,23 @@ class LazyPyramid:
                 sel = (k == lv) & ~fine
                 _, hh, origin, nu, nv = self._geometry[lv][:5]
                 r = reach[sel] + 3 * hh
-                lo_u = np.clip(np.floor((uc[idx][sel] - r - origin) / hh) - 2, 0, nu - 1).astype(np.int64) // self.side
-                hi_u = np.clip(np.floor((uc[idx][sel] + r - origin) / hh) + 3, 0, nu - 1).astype(np.int64) // self.side
-                lo_v = np.clip(np.floor((vc[idx][sel] - r - origin) / hh) - 2, 0, nv - 1).astype(np.int64) // self.side
-                hi_v = np.clip(np.floor((vc[idx][sel] + r - origin) / hh) + 3, 0, nv - 1).astype(np.int64) // self.side
+                side = self._side(int(lv))
+                lo_u = np.clip(np.floor((uc[idx][sel] - r - origin) / hh) - 2, 0, nu - 1).astype(np.int64) // side
+                hi_u = np.clip(np.floor((uc[idx][sel] + r - origin) / hh) + 3, 0, nu - 1).astype(np.int64) // side
+                lo_v = np.clip(np.floor((vc[idx][sel] - r - origin) / hh) - 2, 0, nv - 1).astype(np.int64) // side
+                hi_v = np.clip(np.floor((vc[idx][sel] + r - origin) / hh) + 3, 0, nv - 1).astype(np.int64) // side
                 keys.append(_tile_keys(int(lv), lo_u, hi_u, lo_v, hi_v))
         return np.unique(np.concatenate(keys)) if keys else np.zeros(0, np.int64)
 
     def _run(self, field, todo, uc, vc, cuu, cuv, cvv, widen, out, counts) -> None:
         """Integrals ``todo`` (in kernel order), in chunks whose tiles fit half the pool at once."""
-        per_tile = self.blocks * self.blocks
-        room = self.n_slots // (2 * per_tile)
+        room = self.n_slots // 2
+        blocks = np.array([self.level_blocks(k) ** 2 for k in range(len(self._geometry))])
         stack = [todo]
         while stack:
             chunk = stack.pop()
             need = self._tiles_of(chunk, uc, vc, cuu, cuv, cvv, widen)
-            if need.size > room and chunk.size > 1:
+            if blocks[need >> 40].sum() > room and chunk.size > 1:
                 half = chunk.size // 2
                 stack += [chunk[half:], chunk[:half]]
                 continue
@@ -328,13 +365,16 @@ class LazyPyramid:
             try:
                 for key in pins:
                     self.tile(*key)
-                    self._pinned.add(key)
+                    if key not in self._pinned:
+                        self._pinned.add(key)
+                        self._pinned_blocks += self.level_blocks(key[0]) ** 2
                 p = self.packed()
                 out[chunk] = np.nan  # stays NaN only if the kernel found a block missing
                 ss._kernel(field, ss.PHI_TABLE, p.coef, self.slots, p.scale, p.step, p.u0, p.v0, p.nu, p.nv, p.offset,
                            uc, vc, cuu, cuv, cvv, chunk, out, counts, nb.get_num_threads())
             finally:
                 self._pinned.clear()
+                self._pinned_blocks = 0
 
 
 def _tile_keys(k: int, lo_u, hi_u, lo_v, hi_v) -> np.ndarray:
