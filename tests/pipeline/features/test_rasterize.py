@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import shapely
 from affine import Affine
 from hypothesis import assume, example, given, settings
 from hypothesis import strategies as st
-import pytest
 
 from pipeline.features import rasterize
 from pipeline.gis.grid import NODATA_CODE, Grid
