@@ -122,7 +122,13 @@ def _distance_feature(spec: FeatureSpec, layers: _Layers, grid) -> Feature:
     # burn on the grid grown by margin_m on each side, so features just outside the bounds count
     pad_r, pad_c = int(np.ceil(spec.margin_m / grid.dy)), int(np.ceil(spec.margin_m / grid.dx))
     padded = grid.window_grid(-pad_r, -pad_c, grid.height + 2 * pad_r, grid.width + 2 * pad_c)
-    m = rasterize.mask(layers.geometries(spec.layers), padded, spec.buffer_m, spec.all_touched)
+    geoms = layers.geometries(spec.layers)
+    if spec.to == "ends":
+        try:
+            geoms = rasterize.line_ends(geoms)
+        except ValueError as e:
+            raise LayerError(f"[features.{spec.name}] (to = \"ends\") of layers {list(spec.layers)}: {e}") from None
+    m = rasterize.mask(geoms, padded, spec.buffer_m, spec.all_touched)
     d = distance_m(m, grid.dx, grid.dy, spec.max_distance_m)[pad_r:pad_r + grid.height, pad_c:pad_c + grid.width]
     return Feature(spec.name, np.ascontiguousarray(d), "continuous", units="m")
 

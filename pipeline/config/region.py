@@ -77,7 +77,8 @@ class FeatureSpec:
       ``all_touched`` (default false), ``labels`` ([outside, inside], default ["no", "yes"]).
     - ``distance``: ``layers`` (vector) -> Euclidean distance in metres to the nearest cell they touch;
       optional ``max_distance_m``, ``margin_m`` (metres around the grid where the layers still count,
-      so a road just outside the bounds is not ignored; default 0).
+      so a road just outside the bounds is not ignored; default 0), ``to`` ("lines", default, or "ends":
+      to the nearest end point of the layers' lines, e.g. where farm tracks end at a farmstead).
     - ``slope``: ``layer`` (a DEM raster or point cloud) -> slope in degrees.
     - ``elevation``: ``layer`` (a DEM raster or point cloud) -> ground elevation in metres.
     - ``classes``: ``source`` (a continuous feature), ``breaks`` (ascending, units of the source),
@@ -97,6 +98,7 @@ class FeatureSpec:
     labels: tuple[str, ...] = ()
     max_distance_m: float | None = None
     margin_m: float = 0.0
+    to: str = "lines"
     source: str | None = None
     breaks: tuple[float, ...] = ()
     attribute: str | None = None
@@ -112,10 +114,13 @@ class FeatureSpec:
         return self.layers[0]
 
 
+DISTANCE_TO = ("lines", "ends")
+"""What a distance feature measures to: the layers' geometries, or the end points of their lines."""
+
 FEATURE_TYPES: dict[str, tuple[set[str], set[str]]] = {
     # type: (required keys, optional keys) besides "type"
     "mask": ({"layers"}, {"buffer_m", "all_touched", "labels"}),
-    "distance": ({"layers"}, {"max_distance_m", "margin_m", "buffer_m", "all_touched"}),
+    "distance": ({"layers"}, {"max_distance_m", "margin_m", "buffer_m", "all_touched", "to"}),
     "slope": ({"layer"}, set()),
     "elevation": ({"layer"}, set()),
     "classes": ({"source", "breaks"}, {"labels"}),
@@ -328,6 +333,9 @@ def _parse_feature(source: Path, name: str, d: Any, layers: dict[str, LayerSpec]
     if ftype == "distance":
         kw["max_distance_m"] = t.number("max_distance_m", None, positive=True)
         kw["margin_m"] = t.number("margin_m", 0.0, nonneg=True)
+        kw["to"] = t.get("to", str, "lines", '"lines" or "ends"')
+        if kw["to"] not in DISTANCE_TO:
+            raise t.err("to", f"must be one of {list(DISTANCE_TO)}, got {kw['to']!r}")
     if ftype in ("slope", "elevation"):
         kw["layers"] = layer_refs("layer", ("raster", "pointcloud"))
     if ftype == "classes":

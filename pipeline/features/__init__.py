@@ -6,6 +6,7 @@ _EXPORTS = {
     "Feature": "stack",
     "FeatureStack": "stack",
     "distance_m": "distance",
+    "line_ends": "rasterize",
     "slope_classes": "slope",
     "slope_deg": "slope",
 }

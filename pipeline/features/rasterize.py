@@ -20,6 +20,20 @@ def _buffered(geoms: np.ndarray, buffer_m: float) -> np.ndarray:
     return shapely.buffer(geoms, buffer_m)
 
 
+def line_ends(geoms: np.ndarray) -> np.ndarray:
+    """Both end points of every line (multi-lines: of every part), as shapely Points in the lines' CRS;
+    ValueError naming the first geometry that is not a line (points and polygons have no ends)."""
+    geoms = np.asarray(geoms, dtype=object)
+    if geoms.size == 0:
+        return np.empty(0, dtype=object)
+    parts = shapely.get_parts(geoms[~shapely.is_empty(geoms)])
+    kinds = shapely.get_type_id(parts)
+    bad = np.flatnonzero((kinds != shapely.GeometryType.LINESTRING) & (kinds != shapely.GeometryType.LINEARRING))
+    if bad.size:
+        raise ValueError(f"end points need lines, got {bad.size} other geometries (the first a {parts[bad[0]].geom_type})")
+    return np.concatenate([shapely.get_point(parts, 0), shapely.get_point(parts, -1)])
+
+
 def mask(geoms: np.ndarray, grid: Grid, buffer_m: float = 0.0, all_touched: bool = False) -> np.ndarray:
     """Boolean (H, W) mask of the cells covered by ``geoms`` (optionally buffered by ``buffer_m`` metres)."""
     geoms = _buffered(np.asarray(geoms, dtype=object), buffer_m)

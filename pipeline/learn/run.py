@@ -48,26 +48,27 @@ class LearnReport:
     def table(self) -> str:
         """Fitted likelihoods with 95% intervals beside the naive fit, then the CV scores."""
         est, nv = self.estimator, self.naive
-        lines = [f"{'feature':<16}{'level':<12}{'ML':>10}  {'95% CI':<22}{'naive':>10}"]
+        w = max(16, 2 + max((len(t.feature) for t in est.terms_), default=0))  # long names keep their columns
+        lines = [f"{'feature':<{w}}{'level':<12}{'ML':>10}  {'95% CI':<22}{'naive':>10}"]
         for t, p in zip(est.terms_, est.params_, strict=True):
             f = t.feature
             if t.form in DISCRETE_FORMS:
                 for k, lv in enumerate(t.levels):
                     v, nvv = est.likelihoods_[f][lv], nv.likelihoods_[f][lv]
                     if not p.has_area[k]:
-                        lines.append(f"{f:<16}{lv:<12}{v:>10.4g}  {'no area: not fitted':<22}{nvv:>10.4g}")
+                        lines.append(f"{f:<{w}}{lv:<12}{v:>10.4g}  {'no area: not fitted':<22}{nvv:>10.4g}")
                     elif k in t.zeros:
                         note = "structural zero" if v == 0 else f"softened zero {v:g}"
-                        lines.append(f"{f:<16}{lv:<12}{v:>10.4g}  {note:<22}{nvv:>10.4g}")
+                        lines.append(f"{f:<{w}}{lv:<12}{v:>10.4g}  {note:<22}{nvv:>10.4g}")
                     elif k == t.reference:
-                        lines.append(f"{f:<16}{lv:<12}{v:>10.4g}  {'reference':<22}{nvv:>10.4g}")
+                        lines.append(f"{f:<{w}}{lv:<12}{v:>10.4g}  {'reference':<22}{nvv:>10.4g}")
                     else:
                         lo, hi = est.ci_[f][lv]
-                        lines.append(f"{f:<16}{lv:<12}{v:>10.4g}  [{lo:.4g}, {hi:.4g}]".ljust(50) + f"{nvv:>10.4g}")
+                        lines.append(f"{f:<{w}}{lv:<12}{v:>10.4g}  [{lo:.4g}, {hi:.4g}]".ljust(34 + w) + f"{nvv:>10.4g}")
             else:
                 for key in est.likelihoods_[f]:
                     lo, hi = est.ci_[f][key]
-                    lines.append(f"{f:<16}{key:<12}{est.likelihoods_[f][key]:>10.4g}  [{lo:.4g}, {hi:.4g}]".ljust(50)
+                    lines.append(f"{f:<{w}}{key:<12}{est.likelihoods_[f][key]:>10.4g}  [{lo:.4g}, {hi:.4g}]".ljust(34 + w)
                                  + f"{nv.likelihoods_[f][key]:>10.4g}")
         lines.append(
             f"points: {est.n_points_} read, {est.n_used_} used, {est.n_off_grid_} off the grid, "

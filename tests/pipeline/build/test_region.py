@@ -330,3 +330,25 @@ def test_distance_margin_sees_roads_outside_the_grid(tmp_path: Path) -> None:
     _, yc = cfg.grid.cell_centres()
     # the road burns the padded row of cells 6_200_900..6_200_920 m, centre 6_200_910 m
     np.testing.assert_allclose(stack["near"].values, 6_200_910.0 - yc, rtol=1e-12)
+
+
+def test_distance_to_line_ends_is_the_brute_force_distance_to_their_cells(tmp_path: Path) -> None:
+    """to = "ends": distance from every cell centre to the nearest centre of a cell holding a line's end
+    point (the distance transform's rule), brute force over the ends; a point layer is a named error."""
+    rng = np.random.default_rng(3)
+    lines = [shapely.LineString(rng.uniform([500_010, 6_200_010], [500_990, 6_200_790], (k, 2))) for k in (2, 3, 5, 4)]
+    path = write_vector(tmp_path / "tracks.gpkg", lines)
+    pts = write_vector(tmp_path / "pts.gpkg", [shapely.Point(500_500, 6_200_400)])
+    cfg = load_config(small_region(tmp_path, {"ends": {"type": "distance", "layers": ["t"], "to": "ends"},
+                                              "lines": {"type": "distance", "layers": ["t"]}}, t=path))
+    stack = build_features(cfg, progress=False)
+    xc, yc = cfg.grid.cell_centres()
+    ends = np.array([c for g in lines for c in (g.coords[0], g.coords[-1])])
+    r, c, _ = cfg.grid.cell_index(ends[:, 0], ends[:, 1])
+    ex, ey = xc[r, c], yc[r, c]
+    brute = np.min(np.hypot(xc[..., None] - ex, yc[..., None] - ey), axis=-1)
+    np.testing.assert_allclose(stack["ends"].values, brute, rtol=1e-12, atol=1e-9)
+    assert (stack["ends"].values >= stack["lines"].values).all()
+    bad = load_config(small_region(tmp_path, {"ends": {"type": "distance", "layers": ["p"], "to": "ends"}}, p=pts))
+    with pytest.raises(LayerError, match=r"\[features\.ends\] \(to = \"ends\"\).*'p'.*need lines.*Point"):
+        build_features(bad, progress=False)

@@ -134,6 +134,8 @@ def test_geographic_grid_refused_with_hint(tmp_path: Path) -> None:
         (lambda d: d["features"]["slope"].update(type="gradient"), ["features.slope.type", "'gradient'"]),
         (lambda d: d["features"]["slope"].pop("layer"), ["features.slope.layer", "missing"]),
         (lambda d: d["features"]["road_distance"].update(buffer_m=-1), ["features.road_distance.buffer_m"]),
+        (lambda d: d["features"]["road_distance"].update(to="starts"), ["features.road_distance.to", "'starts'"]),
+        (lambda d: d["features"]["road_distance"].update(to=1), ["features.road_distance.to"]),
         (lambda d: d["features"].update(c={"type": "classes", "source": "slope", "breaks": [5, 5]}), ["features.c.breaks", "increase"]),
         (lambda d: d["features"].update(c={"type": "classes", "source": "slope", "breaks": [5], "labels": ["a"]}), ["features.c.labels", "2 classes"]),
         (lambda d: d["features"].update(c={"type": "classes", "source": "aspect", "breaks": [5]}), ["features.c.source", "'aspect'"]),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import shapely
 from affine import Affine
 from hypothesis import assume, example, given, settings
@@ -107,3 +108,22 @@ def test_categories_later_polygons_win(polys, data) -> None:
         tie |= near_boundary(poly)
     np.testing.assert_array_equal(got[~tie], expected[~tie])
     assert got.dtype == np.int32
+
+
+lines = st.lists(coords, min_size=2, max_size=6).map(shapely.LineString)
+
+
+@given(st.lists(st.one_of(lines, st.lists(lines, min_size=1, max_size=3).map(shapely.MultiLineString)), max_size=5))
+@settings(max_examples=40, deadline=None)
+def test_line_ends_are_each_parts_first_and_last_vertex(geoms) -> None:
+    """Vectorised end points against a loop over every part's coordinate list."""
+    brute = sorted(c for g in geoms for part in getattr(g, "geoms", [g]) for c in (part.coords[0], part.coords[-1]))
+    got = sorted(tuple(p.coords[0]) for p in rasterize.line_ends(np.asarray(geoms, dtype=object)))
+    assert got == brute
+
+
+def test_line_ends_refuse_points_and_polygons() -> None:
+    for bad, kind in ((shapely.Point(1, 2), "Point"), (shapely.box(0, 0, 1, 1), "Polygon")):
+        with pytest.raises(ValueError, match=f"end points need lines.*{kind}"):
+            rasterize.line_ends(np.asarray([shapely.LineString([(0, 0), (1, 1)]), bad], dtype=object))
+    assert rasterize.line_ends(np.empty(0, dtype=object)).size == 0

@@ -69,3 +69,24 @@ def test_hybrid_beats_uniform_naive_terrain_and_kde(swellendam_fit) -> None:
     g = {m: v["pooled"] for m, v in s["gain_nats"].items()}
     assert g["hybrid"] > max(g["uniform"], g["naive"], g["terrain"], g["kde"]), g
     assert s["hybrid_fold_wins"]["uniform"] == 5
+
+
+def test_learning_config_reads_the_farm_tracks_and_fits_every_listed_feature(swellendam: Path, tmp_path) -> None:
+    """terrain_data/swellendam_learn.toml: its tracks layer is exactly the roads layer's tracks, paths and
+    footways (counted straight from the file), and every [learn] feature has a form."""
+    import pyogrio
+
+    from pipeline.gis.layers import read_vector
+
+    doc = tomllib.loads((REPO / "terrain_data" / "swellendam_learn.toml").read_text())
+    for layer in doc["layers"].values():
+        layer["path"] = str(swellendam / Path(layer["path"]).name)
+    cfg, learn = load_learn_config(write_config(tmp_path / "swellendam_learn.toml", doc))
+    highway = pyogrio.read_dataframe(swellendam / "training_data.gpkg", layer="roads", read_geometry=False)["highway"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        tracks = read_vector(cfg.layers["tracks"], cfg.grid)
+    assert len(tracks.geometries) == int(highway.isin(["track", "path", "footway"]).sum()) > 100
+    assert cfg.features["track_end_distance"].to == "ends"
+    continuous = [f for f in learn.features if cfg.features[f].type not in ("mask", "categories")]
+    assert continuous and all(f in learn.forms for f in continuous)
