@@ -10,10 +10,10 @@ simulation associated with r over the whole grid (the mismatch). Goal: every bin
 has a fraction truly from one target (point estimate) in p + 0.05 ± 0.05; standard errors binomial and
 over data sets. Reliability diagram: bench/figures/batch_reliability.png.
 
-Full: 600 data sets for "model" and "paper", 60 for "paper-grid", seeds from 10,000 (the exploratory
+Full: 500 data sets for "model" and "paper", 60 for "paper-grid", seeds from 10,000 (the exploratory
 run of session 5 used seeds 0–59; the counts were fixed before any bin was seen). Convergence check,
-fixed in advance: for each of "model" and "paper" with a bin out of band, its first 150 data sets are
-rerun with 4× the burn-in and samples, beside the same 150 at 1×. Speed: the sampler on 12 data sets
+fixed in advance: for each of "model" and "paper" with a bin out of band, its first 40 data sets are
+rerun with 4× the burn-in and samples, beside the same 40 at 1×. Speed: the sampler on 12 data sets
 with and without the ln L cache, same run (CPU s, one process). Quick: 4 data sets each.
 """
 
@@ -40,9 +40,9 @@ from tracker.study.simulate import central_windows, simulate
 
 HERE = Path(__file__).resolve().parent
 REGION = HERE.parent / "terrain_data" / "region.toml"
-FULL = {"model": 600, "paper": 600, "paper-grid": 60}
+FULL = {"model": 500, "paper": 500, "paper-grid": 60}
 SEED = 10_000
-CHECK_SETS = 150
+CHECK_SETS = 40
 SWEEPS = {"burn_in": 20, "samples": 100, "split_merge": 2}
 
 
