@@ -37,6 +37,7 @@ of this bound over the clusters outside the gate (:func:`gate_bound`).
 from __future__ import annotations
 
 import math
+import sys
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -71,6 +72,11 @@ VARIANTS = ("UU", "TT")
 MODES = ("map", "sample")
 CHUNK = 65536
 """Reports per Gibbs round: larger rounds amortise gating and integrate calls, smaller ones conflict less."""
+CACHE_MAX_K = 20000
+"""Up to this many reports a chain memoises ln L per cluster (by member set): a chain on a few hundred
+reports revisits the same clusters (~3 % of the candidates of a calibration run are distinct), while at
+10⁶ reports a sweep rarely does and the table would only cost memory."""
+_KEY_SEED = 0x5EED_C1A5
 _LOG_2PI = math.log(2.0 * math.pi)
 
 def _default_integrator() -> Integrator:
@@ -98,7 +104,9 @@ def _log_u(prior: TerrainPrior) -> float:
 @dataclass(frozen=True)
 class ReportStats:
     """Per report: ``vinv`` V⁻¹ (K,2,2) per m², ``hv`` V⁻¹(z − origin) (K,2) per m, ``qv`` (z−o)ᵀV⁻¹(z−o)
-    (K,), ``ldv`` ln det V (K,) ln m⁴; ``origin`` (2,) m, ``z`` (K,2) m and ``V`` (K,2,2) m² as given."""
+    (K,), ``ldv`` ln det V (K,) ln m⁴; ``origin`` (2,) m, ``z`` (K,2) m and ``V`` (K,2,2) m² as given;
+    ``key`` (K,) uint64 random keys (fixed seed): a cluster's key is the XOR of its members' (Zobrist
+    hashing; two different member sets share a key with probability 2⁻⁶⁴)."""
 
     vinv: np.ndarray
     hv: np.ndarray
@@ -107,6 +115,7 @@ class ReportStats:
     origin: np.ndarray
     z: np.ndarray
     V: np.ndarray
+    key: np.ndarray
 
     @classmethod
     def of(cls, reports: Reports) -> ReportStats:
@@ -119,7 +128,8 @@ class ReportStats:
         hv = np.stack([vinv[:, 0, 0] * zo[:, 0] + vinv[:, 0, 1] * zo[:, 1],
                        vinv[:, 1, 0] * zo[:, 0] + vinv[:, 1, 1] * zo[:, 1]], axis=1)
         qv = zo[:, 0] * hv[:, 0] + zo[:, 1] * hv[:, 1]
-        return cls(vinv, hv, qv, np.log(det_v), origin, z, V)
+        key = np.random.default_rng(_KEY_SEED).integers(0, np.iinfo(np.uint64).max, z.shape[0], dtype=np.uint64, endpoint=True)
+        return cls(vinv, hv, qv, np.log(det_v), origin, z, V, key)
 
 
 def cluster_log_lik(
@@ -173,6 +183,15 @@ def gate_bound(log_s_ratio: float, gamma: float, log_rmax: float, log_det_v: flo
     return float(np.exp(base - np.asarray(log_i_d)).sum())
 
 
+def _gain(with_k: float, without_k: float) -> float:
+    """ln L(G ∪ k) − ln L(G) for a restricted-Gibbs step: NaN (a group of zero prior mass on both sides)
+    is no weight, and ±inf is clipped to ±float max."""
+    d = with_k - without_k
+    if d != d:
+        return -math.inf
+    return max(min(d, sys.float_info.max), -sys.float_info.max)
+
+
 def _check_variant(variant: str) -> None:
     if variant not in VARIANTS:
         raise ValueError(f"variant must be one of {VARIANTS} (UT associates as UU), got {variant!r}")
@@ -205,11 +224,12 @@ class BatchResult:
 
 
 class _Chain:
-    """One partition state with its cluster sums, ln L per cluster, and ln p(Λ|Z) kept up to date."""
+    """One partition state with its cluster sums and keys, ln L per cluster, and ln p(Λ|Z) kept up to
+    date. ``cache`` (None: off) maps a cluster's key to its ln L, shared by the chains of one fit."""
 
     def __init__(self, owner: BatchAssociator, rs: ReportStats, single_ll: np.ndarray, labels: np.ndarray,
-                 table: np.ndarray | None) -> None:
-        self.o, self.rs, self.single_ll, self.table = owner, rs, single_ll, table
+                 table: np.ndarray | None, cache: dict[int, float] | None = None) -> None:
+        self.o, self.rs, self.single_ll, self.table, self.cache = owner, rs, single_ll, table, cache
         K = rs.z.shape[0]
         self.K = K
         _, inv = np.unique(labels, return_inverse=True)
@@ -219,13 +239,15 @@ class _Chain:
                                                      (((), np.int64), ((2, 2), float), ((2,), float), ((), float), ((), float)))
         for dst, src in zip((self.cnt, self.P, self.h, self.q, self.ld), _sums(self.labels, rs, n), strict=True):
             dst[:n] = src
+        self.zh = np.zeros(K, np.uint64)
+        np.bitwise_xor.at(self.zh, self.labels, rs.key)
         self.logL = np.zeros(K)
         # a singleton's ln L is its report's (the same sums, so the same integral): integrate the rest
         member = np.zeros(n, np.int64)
         member[self.labels] = np.arange(K)
         self.logL[:n] = single_ll[member]
         mc = np.flatnonzero(self.cnt[:n] > 1)
-        self.logL[mc] = self._ll(self.cnt[mc], self.P[mc], self.h[mc], self.q[mc], self.ld[mc], self._masks(mc))
+        self.logL[mc] = self._ll(self.cnt[mc], self.P[mc], self.h[mc], self.q[mc], self.ld[mc], self._masks(mc), self.zh[mc])
         self.cb, self.cB = np.zeros((K, 2)), np.tile(np.eye(2), (K, 1, 1))
         self.cb[:n], self.cB[:n] = self._gaussians(self.P[:n], self.h[:n])
         self.lam_v = lambda_max(rs.V)
@@ -237,7 +259,7 @@ class _Chain:
         self.s_cache = np.full(K + 2, np.nan)
         self.lp = float(log_s(owner.s_model, n, K)) + float(self.logL[:n].sum())
 
-    # -- ln L of candidate clusters: the table (tests, K <= 20) or the integrator
+    # -- ln L of candidate clusters: the table (tests, K <= 20), the cache, or the integrator
 
     def _masks(self, clusters: np.ndarray) -> np.ndarray | None:
         if self.table is None:
@@ -246,9 +268,24 @@ class _Chain:
         np.bitwise_or.at(masks, self.labels, np.left_shift(np.int64(1), np.arange(self.K, dtype=np.int64)))
         return masks[clusters]
 
-    def _ll(self, cnt, P, h, q, ld, masks) -> np.ndarray:
+    def _ll(self, cnt, P, h, q, ld, masks, keys) -> np.ndarray:
         if self.table is not None:
             return self.table[masks]
+        if self.cache is None:
+            return self._integrate(cnt, P, h, q, ld)
+        got = self._cached(keys)
+        miss = np.flatnonzero(np.isnan(got))
+        if miss.size:
+            got[miss] = self._integrate(cnt[miss], P[miss], h[miss], q[miss], ld[miss])
+            self.cache.update(zip(keys[miss].tolist(), got[miss].tolist(), strict=True))
+        return got
+
+    def _cached(self, keys: np.ndarray) -> np.ndarray:
+        """ln L of the clusters with ``keys`` from the cache, NaN where absent (ln L is never NaN)."""
+        get = self.cache.get
+        return np.array([get(k, math.nan) for k in keys.tolist()], float)
+
+    def _integrate(self, cnt, P, h, q, ld) -> np.ndarray:
         self.o.stats_["integrals"] += int(cnt.size) if self.o.variant == "TT" else 0
         return cluster_log_lik(self.o.prior, self.o.variant, cnt, P, h, q, ld, self.rs.origin, self.o.integrator)
 
@@ -325,7 +362,8 @@ class _Chain:
             cm = self._masks(np.arange(self.K))
             bit = np.left_shift(np.int64(1), np.arange(self.K, dtype=np.int64))
             masks = np.concatenate([cm[e_cl] | bit[e_j], cm[m_cl] & ~bit[jm]])
-        ll = self._ll(cnt_all, P_all, h_all, q_all, ld_all, masks)
+        keys = np.concatenate([self.zh[e_cl] ^ rs.key[e_j], self.zh[m_cl] ^ rs.key[jm]])
+        ll = self._ll(cnt_all, P_all, h_all, q_all, ld_all, masks, keys)
         n_ext = e_cl.size
         own_minus = np.zeros(m)
         own_minus[sm] = ll[n_ext:]
@@ -343,6 +381,8 @@ class _Chain:
         self.lp += d_lp
         after = self.labels[j_sel]
         went = after != before  # only the reports that moved changed clusters
+        np.bitwise_xor.at(self.zh, before[went], rs.key[j_sel[went]])
+        np.bitwise_xor.at(self.zh, after[went], rs.key[j_sel[went]])
         changed = np.unique(np.concatenate([before[went], after[went]]))
         self.index.remove(changed[self.cnt[changed] == 0])
         changed = changed[self.cnt[changed] > 0]
@@ -354,6 +394,11 @@ class _Chain:
 
     def _set_ll(self, members: list[np.ndarray]) -> np.ndarray:
         rs = self.rs
+        keys = np.array([np.bitwise_xor.reduce(rs.key[x]) for x in members], np.uint64)
+        if self.table is None and self.cache is not None:
+            got = self._cached(keys)
+            if not np.isnan(got).any():
+                return got  # no sums needed
         cnt = np.array([x.size for x in members], np.int64)
         P = np.array([rs.vinv[x].sum(0) for x in members]).reshape(-1, 2, 2)
         h = np.array([rs.hv[x].sum(0) for x in members]).reshape(-1, 2)
@@ -362,7 +407,7 @@ class _Chain:
         masks = None
         if self.table is not None:
             masks = np.array([np.bitwise_or.reduce(np.left_shift(np.int64(1), x.astype(np.int64))) for x in members], np.int64)
-        return self._ll(cnt, P, h, q, ld, masks)
+        return self._ll(cnt, P, h, q, ld, masks, keys)
 
     def _restricted(self, i: int, j: int, rest: np.ndarray, side: np.ndarray, rng, target: np.ndarray | None = None) -> tuple[np.ndarray, float]:
         """One restricted Gibbs scan of ``rest`` between the groups of i and j from state ``side`` (True =
@@ -370,20 +415,35 @@ class _Chain:
         (the merge move's reverse proposal). Returns (side, ln q)."""
         log_q = 0.0
         side = side.copy()
+        key = self.rs.key
+        # the groups' keys without report k, kept by XOR: the member arrays are built on a cache miss only
+        ki = int(np.bitwise_xor.reduce(key[rest[~side]], initial=key[i]))
+        kj = int(np.bitwise_xor.reduce(key[rest[side]], initial=key[j]))
+        get = self.cache.get if self.cache is not None and self.table is None else None
         for t in range(rest.size):
             k = rest[t]
-            others = np.delete(np.arange(rest.size), t)
-            gi = np.concatenate([[i], rest[others][~side[others]]]).astype(np.int64)
-            gj = np.concatenate([[j], rest[others][side[others]]]).astype(np.int64)
-            ll = self._set_ll([gi, np.append(gi, k), gj, np.append(gj, k)])
-            with np.errstate(invalid="ignore"):  # a group of zero prior mass: -inf - -inf, no weight
-                wi, wj = np.nan_to_num(ll[1] - ll[0], nan=-math.inf), np.nan_to_num(ll[3] - ll[2], nan=-math.inf)
+            kk = int(key[k])
+            if side[t]:
+                kj ^= kk
+            else:
+                ki ^= kk
+            ll = [get(x) for x in (ki, ki ^ kk, kj, kj ^ kk)] if get else [None]
+            if None in ll:
+                others = np.delete(np.arange(rest.size), t)
+                gi = np.concatenate([[i], rest[others][~side[others]]]).astype(np.int64)
+                gj = np.concatenate([[j], rest[others][side[others]]]).astype(np.int64)
+                ll = self._set_ll([gi, np.append(gi, k), gj, np.append(gj, k)]).tolist()
+            wi, wj = _gain(ll[1], ll[0]), _gain(ll[3], ll[2])
             top = max(wi, wj)
             if top == -math.inf:
                 return side, -math.inf  # k fits neither group (prior zero): the proposal is void
             norm = top + math.log(math.exp(wi - top) + math.exp(wj - top))
             side[t] = rng.random() < math.exp(wj - norm) if target is None else target[t]
             log_q += (wj if side[t] else wi) - norm
+            if side[t]:
+                kj ^= kk
+            else:
+                ki ^= kk
         return side, log_q
 
     def split_merge(self, beta: float, rng: np.random.Generator, pairs: np.ndarray, n_moves: int, launch: int) -> int:
@@ -428,7 +488,7 @@ class _Chain:
         """Rebuild the state from labels (-1: a new cluster); after an accepted split–merge."""
         labels = labels.copy()
         labels[labels < 0] = labels.max() + 1
-        self.__init__(self.o, self.rs, self.single_ll, labels, self.table)
+        self.__init__(self.o, self.rs, self.single_ll, labels, self.table, self.cache)
 
 
 class BatchAssociator:
@@ -442,7 +502,8 @@ class BatchAssociator:
     state visited wins. Sample mode: ``burn_in`` sweeps then ``samples`` sweeps, one sample each.
     ``split_merge`` proposals per sweep with ``launch`` restricted-Gibbs launch scans. ``seed`` for a
     ``numpy.random.Generator``; ``progress`` shows tqdm over sweeps. ``table=True`` (K <= 20, tests)
-    precomputes ln L for all 2^K subsets in one integrate call. Rounds gate through the chain's cluster
+    precomputes ln L for all 2^K subsets in one integrate call; otherwise ``cache`` (None: when K <=
+    :data:`CACHE_MAX_K`) memoises each cluster's ln L by its member set for the fit. Rounds gate through the chain's cluster
     index (:class:`~tracker.association.cluster_index.ClusterIndex`, the gater's exact test); a ``gater``
     given instead gates each round against all live clusters (the same chain, slower; tests and
     benchmarks); the gated report pairs of split–merge use ``gater`` (default
@@ -453,7 +514,7 @@ class BatchAssociator:
         self, prior: TerrainPrior, variant: str = "TT", tau: float | None = None, s_model: SModel | None = None,
         mode: str = "map", gamma: float = DEFAULT_GAMMA, chunk: int = CHUNK, anneal: int = 20, beta_max: float = 50.0,
         icm_max: int = 50, restarts: int = 2, burn_in: int = 20, samples: int = 200, split_merge: int = 0,
-        launch: int = 3, seed: int = 0, progress: bool = False, table: bool = False,
+        launch: int = 3, seed: int = 0, progress: bool = False, table: bool = False, cache: bool | None = None,
         integrator: Integrator | None = None, gater: Gater | None = None,
     ) -> None:
         _check_variant(variant)
@@ -469,7 +530,7 @@ class BatchAssociator:
         self.prior, self.variant, self.mode, self.gamma, self.chunk = prior, variant, mode, float(gamma), int(chunk)
         self.anneal, self.beta_max, self.icm_max, self.restarts = int(anneal), float(beta_max), int(icm_max), int(restarts)
         self.burn_in, self.samples, self.n_split_merge, self.launch = int(burn_in), int(samples), int(split_merge), int(launch)
-        self.seed, self.progress, self.use_table = seed, progress, table
+        self.seed, self.progress, self.use_table, self.cache = seed, progress, table, cache
         # rounds are small: one numba thread below 4096 rows, as in greedy
         self.integrator = one_thread_when_small(integrator or _default_integrator(), 1)
         self.gater = one_thread_when_small(gater or _default_gater(), 2)
@@ -507,7 +568,9 @@ class BatchAssociator:
         if not np.isfinite(single_ll).all():
             bad = np.flatnonzero(~np.isfinite(single_ll))
             raise ValueError(f"reports at indices {bad[:10].tolist()} have zero prior mass under their Gaussian")
-        return _Chain(self, rs, single_ll, np.asarray(labels), table)
+        K = rs.z.shape[0]
+        cache = {} if table is None and (self.cache if self.cache is not None else K <= CACHE_MAX_K) else None
+        return _Chain(self, rs, single_ll, np.asarray(labels), table, cache)
 
     def greedy(self, reports: Reports) -> np.ndarray:
         """The greedy tracker's assignments (paper 1, Fig. 3) under the same variant and S."""
@@ -529,7 +592,7 @@ class BatchAssociator:
         if self.mode == "map":
             for restart in range(self.restarts + 1):
                 if restart:
-                    ch = _Chain(self, ch.rs, ch.single_ll, np.arange(len(reports)), ch.table)
+                    ch = _Chain(self, ch.rs, ch.single_ll, np.arange(len(reports)), ch.table, ch.cache)
                 betas = self.beta_max ** (np.arange(self.anneal) / max(self.anneal - 1, 1))
                 for beta in tqdm(np.concatenate([betas, np.full(self.icm_max, np.inf)]), desc=f"batch map {restart}", unit="sweep", disable=not self.progress):
                     moved = ch.sweep(beta, rng)

@@ -20,6 +20,7 @@ _EXPORTS = {
     "window_prior": "experiment",
     "add_batch_nd": "experiment",
     "batch_nd": "experiment",
+    "map_convergence": "experiment",
     "posterior_median": "experiment",
     "comparison_table": "compare",
     "parse_taus": "experiment",

@@ -148,6 +148,7 @@ def calibration_markdown(study: dict) -> str:
     return "\n".join([head, "|---" * (len(rows) + 1) + "|",
                       "| pairs | " + " | ".join(str(r["n"]) for r in rows) + " |",
                       "| same target | " + " | ".join(fmt) + " |",
+                      "| mean posterior | " + " | ".join(_fmt(r["mean_prob"]) for r in rows) + " |",
                       "| binomial SE | " + " | ".join(_fmt(r["std_error"]) for r in rows) + " |",
                       "| SE over data sets | " + " | ".join(_fmt(r.get("std_error_sets")) for r in rows) + " |",
                       "| in p+0.05±0.05 | " + " | ".join("yes" if r["in_band"] else ("–" if not r["n"] else "no") for r in rows) + " |"])

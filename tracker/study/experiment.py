@@ -98,10 +98,11 @@ class ExperimentConfig:
     renormalised (:func:`window_prior`; UU: uniform over the window), where the design puts every
     target. Greedy keeps r over the whole grid, as in the paper."""
     batch_nd_samples: int = 100
-    """N̂_D of batch is the posterior median of N_D (the Bayes estimate under |N̂_D − N_D|), from
-    ``batch_nd_burn_in`` + ``batch_nd_samples`` sampling sweeps started at the MAP partition; it is
-    computed with the exact S and at each batch algorithm's best τ (:func:`add_batch_nd`).
-    0: no sampling (N̂_D is the MAP partition's cluster count only)."""
+    """With the exact S, N̂_D of batch is the posterior median of N_D (the Bayes estimate under
+    |N̂_D − N_D|), from ``batch_nd_burn_in`` + ``batch_nd_samples`` sampling sweeps started at the MAP
+    partition (:func:`add_batch_nd`). At a τ, S = e^{−nτ} is a tuned penalty, not a count prior, so
+    batch's N̂_D there is the MAP partition's cluster count, like greedy's. 0: no sampling (the MAP
+    count everywhere)."""
     batch_nd_burn_in: int = 10
 
     def __post_init__(self) -> None:
@@ -433,7 +434,7 @@ def posterior_median(values: np.ndarray, prob: np.ndarray) -> int:
 def batch_nd(prior_path: str | os.PathLike, seed: int, config: ExperimentConfig,
              wanted: Sequence[tuple[str, str, float | None]]) -> list[dict]:
     """The posterior of N_D for data set ``seed`` under batch's model, per (associating variant,
-    s_model label, τ) in ``wanted`` (τ None for "poisson"): ``batch_nd_burn_in`` + ``batch_nd_samples``
+    s_model label, τ) in ``wanted`` (τ None for "poisson", the experiment's only use): ``batch_nd_burn_in`` + ``batch_nd_samples``
     sampling sweeps (one split–merge proposal each) from the MAP partition of :func:`run_dataset`.
     Records: seed, assoc_variant, s_model, tau (+inf for "poisson"), nd_hat_bayes (posterior median),
     nd_posterior_mean."""
@@ -455,21 +456,38 @@ def batch_nd(prior_path: str | os.PathLike, seed: int, config: ExperimentConfig,
     return out
 
 
+def map_convergence(prior_path: str | os.PathLike, seed: int, config: ExperimentConfig,
+                    wanted: Sequence[tuple[str, str, float | None]], anneal: int = 50, restarts: int = 3,
+                    split_merge: int = 5) -> list[dict]:
+    """The experiment's MAP (:func:`run_dataset`'s batch) against a long search on data set ``seed``, per
+    (variant, s_model label, τ) in ``wanted`` (τ None for "poisson"): ``anneal`` annealed sweeps with
+    ``split_merge`` proposals each and ICM, from greedy's partition and from all singletons ``restarts``
+    times, best state kept. Records: seed, variant, s_model, tau, short_log_posterior, long_log_posterior
+    (ln p(Λ|Z) + const under batch's model)."""
+    prior = _load_prior(str(prior_path))
+    reports = _scenario(prior, seed, config).reports
+    ctx = _context(str(prior_path), reports, config, CachedIntegrator(prior, partial(integrate_checked, method=config.integrator)))
+    models = {(label, tau if label == "exp" else None): s for label, tau, s in _settings(config)}
+    out = []
+    for variant, label, tau in wanted:
+        s_model = models[(label, tau)]
+        short = _run(ctx, "batch", variant, s_model)
+        kept, init = _batch_start(ctx, _run(ctx, "greedy", variant, s_model).assignments, variant)
+        res = BatchAssociator(ctx.model_prior, variant, s_model=s_model, anneal=anneal, restarts=restarts,
+                              split_merge=split_merge, seed=seed, integrator=ctx.model_integrator).fit(reports.subset(kept), init=init)
+        out.append({"seed": int(seed), "variant": variant, "s_model": label, "tau": np.inf if tau is None else tau,
+                    "short_log_posterior": short.log_posterior, "long_log_posterior": res.log_posterior})
+    return out
+
+
 def add_batch_nd(results: pd.DataFrame, prior_path: str | os.PathLike, config: ExperimentConfig,
                  mapper: Callable[[Callable[[int], list[dict]], Sequence[int]], Iterable[list[dict]]]) -> pd.DataFrame:
-    """Batch's Bayes N̂_D (:func:`batch_nd`) with the exact S and at each batch algorithm's best τ (by
-    mean Score, as Appendix B picks τ*), as columns nd_hat_bayes, nd_abs_error_bayes (NaN elsewhere);
+    """Batch's Bayes N̂_D (:func:`batch_nd`) with the exact S, as columns nd_hat_bayes,
+    nd_abs_error_bayes (NaN elsewhere: at a τ batch's N̂_D is its MAP count ``nd_hat``);
     ``mapper(fn, seeds)`` runs the data sets (:func:`map_local`, or Dask)."""
-    if "batch" not in config.methods or not config.batch_nd_samples:
+    if "batch" not in config.methods or not config.batch_nd_samples or config.poisson_mu is None:
         return results
-    exp = results[results["s_model"] == "exp"]
-    taus = sorted(exp["tau"].unique())
-    wanted = set()
-    for v in config.variants:
-        assoc = "UU" if v == "UT" else v
-        wanted.add((assoc, "exp", float(taus[best_tau_index(score_matrix(exp, algorithm_name(v, "batch")))])))
-        if config.poisson_mu is not None:
-            wanted.add((assoc, "poisson", None))
+    wanted = {("UU" if v == "UT" else v, "poisson", None) for v in config.variants}
     fn = partial(batch_nd, str(prior_path), config=config, wanted=tuple(sorted(wanted, key=str)))
     nd = pd.DataFrame([r for records in mapper(fn, config.seeds) for r in records])
     key = ["seed", "assoc_variant", "s_model", "tau"]  # τ of the exact S: +inf (NaN never matches in a merge)
@@ -596,8 +614,8 @@ def _column_at(results: pd.DataFrame, algorithm: str, tau: float, column: str) -
 def batch_vs_greedy(results: pd.DataFrame, poisson: pd.DataFrame, scores: dict[str, np.ndarray]) -> dict:
     """Appendix B for batch against greedy, per variant run by both, each algorithm at its own τ* (the
     best mean-Score τ) and, with Poisson rows, with the exact S: P(batch better) on Score and on
-    |N̂_D − N_D| (batch's N̂_D the posterior median ``nd_abs_error_bayes`` when present, keys
-    ``*_map_count`` with the MAP partition's count; greedy's its count); ln p(Λ|Z) of batch minus that of
+    |N̂_D − N_D| (greedy's N̂_D its count; batch's at τ* its MAP count, with the exact S the posterior
+    median ``nd_abs_error_bayes`` when present, keys ``exact_s_map_count`` with the MAP count); ln p(Λ|Z) of batch minus that of
     greedy's partition under batch's model per (data set, S) (``min_log_posterior_gain`` ≥ 0 when batch is
     never below greedy); for UU, the share of the UU → TT greedy gap in mean Score (τ*) that batch UU closes."""
     out: dict[str, dict] = {}
@@ -631,7 +649,9 @@ def batch_vs_greedy(results: pd.DataFrame, poisson: pd.DataFrame, scores: dict[s
             settings.append(("exact_s", float("nan"), float("nan")))
         for name, t_b, t_g in settings:
             err_g = _column_at(both, g, t_g, "nd_abs_error")
-            for suffix, column in [("", "nd_abs_error_bayes" if bayes else None), ("_map_count", "nd_abs_error")]:
+            exact = name == "exact_s"
+            for suffix, column in [("", "nd_abs_error_bayes" if bayes and exact else "nd_abs_error"),
+                                   ("_map_count", "nd_abs_error" if bayes and exact else None)]:
                 if column is None:
                     continue
                 err_b = _column_at(both, b, t_b, column)

@@ -142,8 +142,8 @@ def test_integrate_path_gives_the_table_chain(variant: str) -> None:
     prior = cos_prior()
     rep = small_scene(11, 7, prior)
     chains = []
-    for table, chunk in ((True, 1), (False, 64), (False, 3)):
-        ba = BatchAssociator(prior, variant, s_model=PoissonS(4.0), table=table, chunk=chunk)
+    for table, chunk, cache in ((True, 1, None), (False, 64, True), (False, 3, False)):
+        ba = BatchAssociator(prior, variant, s_model=PoissonS(4.0), table=table, chunk=chunk, cache=cache)
         ch = ba.chain(rep, np.zeros(len(rep), np.int64))
         rng = np.random.default_rng(5)
         seq = []
@@ -154,6 +154,36 @@ def test_integrate_path_gives_the_table_chain(variant: str) -> None:
         chains.append(seq)
     assert chains[0] == chains[1] == chains[2]
     assert len(set(chains[0])) > 1  # the chain moved
+
+
+@pytest.mark.parametrize("variant", ["UU", "TT"])
+def test_cached_sampler_walks_the_uncached_chain(variant: str) -> None:
+    """The ln L cache (keyed by member set) changes no draw: the same samples, split-merge included,
+    and every cached value is the cluster's ln L integrated afresh."""
+    prior = cos_prior()
+    rep = simulate(prior, 3, n_targets=15, n_reports=40).reports
+    runs = [BatchAssociator(prior, variant, s_model=PoissonS(15.0), mode="sample", burn_in=3, samples=30, split_merge=3,
+                            seed=4, cache=cache).fit(rep) for cache in (False, True)]
+    np.testing.assert_array_equal(runs[0].pair_prob, runs[1].pair_prob)
+    np.testing.assert_array_equal(runs[0].nd_prob, runs[1].nd_prob)
+    assert runs[1].stats["integrals"] < runs[0].stats["integrals"] or variant == "UU"
+    ba = BatchAssociator(prior, variant, s_model=PoissonS(15.0), seed=4)
+    ch = ba.chain(rep, ba.greedy(rep))
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        ch.sweep(1.0, rng)
+        ch.split_merge(1.0, rng, ba._pairs(ch.rs), 3, 3)
+    assert len(ch.cache) > 0
+    rs = ch.rs
+    live = np.flatnonzero(ch.cnt > 0)
+    for c in live:
+        members = np.flatnonzero(ch.labels == c)
+        assert int(np.bitwise_xor.reduce(rs.key[members])) == int(ch.zh[c])
+        direct = log_posterior(prior, Reports.create(rep.means[members], rep.covs[members], rep.times[members]), np.zeros(members.size, np.int64), PoissonS(15.0), variant) \
+            - float(log_s(PoissonS(15.0), 1, members.size))
+        if members.size > 1:
+            assert ch.cache[int(ch.zh[c])] == pytest.approx(direct, abs=1e-8)
+    assert ch.lp == pytest.approx(log_posterior(prior, rep, ch.labels, PoissonS(15.0), variant), abs=1e-8)
 
 
 @pytest.mark.parametrize("prior_name", ["cos", "uniform", "bundled"])
