@@ -25,6 +25,7 @@ from tracker.gating.grid import (
     build_grid,
     counting_order,
     query_grid,
+    query_radii,
     sorted_pairs,
     spatial_order,
     take_rows,
@@ -116,24 +117,27 @@ def gate_checked(sc: Scene, threshold: float | None = None, *, prob: float | Non
     nt, nr = sc.tpos.shape[0], sc.rpos.shape[0]
     if nt == 0 or nr == 0:
         return _result(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), return_d2)
+    static_on_reports = not sc.moving and orientation != "tracks"
+    if static_on_reports:  # tracks query in spatial order: permute them before any per-track work
+        t_perm = spatial_order(sc.tpos)
+        sc = replace(sc, tpos=take_rows(sc.tpos, t_perm), tcov=take_rows(sc.tcov, t_perm))
     plan = _plan(sc, gamma, w_logdet, n_projections, orientation, constants)
     by_bin, bin_start = (counting_order(plan.bin_of_report, plan.m) if plan.m > 1
-                         else (np.arange(nr), np.array([0, nr])))
-    if plan.on_reports:  # tracks query in spatial order at mid-scan: a permuted copy
-        t_mid = 0.5 * (sc.rtime.min() + sc.rtime.max()) if sc.moving else 0.0
-        t_perm = spatial_order(sc.tpos + (t_mid - sc.ttime)[:, None] * sc.tvel
-                               if sc.moving else sc.tpos)
-        sc = replace(sc, tpos=take_rows(sc.tpos, t_perm), tcov=take_rows(sc.tcov, t_perm))
-        if sc.moving:  # static tracks have zero velocities, times, noise and speeds in any order
-            sc = replace(sc, tvel=take_rows(sc.tvel, t_perm), ttime=sc.ttime[t_perm],
-                         tq=sc.tq[t_perm])
-            plan = replace(plan, speed=plan.speed[t_perm])
-        plan = replace(plan, reach=plan.reach.take(t_perm), gamma_t=plan.gamma_t[t_perm])
-    else:  # each bin's reports query in spatial order: a copy permuted so that bins are slices
+                         else (None, np.array([0, nr])))
+    if plan.on_reports and not static_on_reports:  # at mid-scan, a permuted copy
+        t_mid = 0.5 * (sc.rtime.min() + sc.rtime.max())
+        t_perm = spatial_order(sc.tpos + (t_mid - sc.ttime)[:, None] * sc.tvel)
+        sc = replace(sc, tpos=take_rows(sc.tpos, t_perm), tcov=take_rows(sc.tcov, t_perm),
+                     tvel=take_rows(sc.tvel, t_perm), ttime=sc.ttime[t_perm], tq=sc.tq[t_perm])
+        plan = replace(plan, speed=plan.speed[t_perm], reach=plan.reach.take(t_perm),
+                       gamma_t=plan.gamma_t[t_perm])
+    elif not plan.on_reports:  # each bin's reports query in spatial order: a copy permuted so that bins are slices
         r_order = spatial_order(sc.rpos)
-        r_perm = r_order[counting_order(plan.bin_of_report[r_order], plan.m)[0]]
+        r_perm = (r_order if plan.m == 1 else
+                  r_order[counting_order(plan.bin_of_report[r_order], plan.m)[0]])
         rank = np.empty(nr, np.int64)  # position of a report among its bin's ids, ascending
-        rank[by_bin] = np.arange(nr) - np.repeat(bin_start[:-1], np.diff(bin_start))
+        rank[np.arange(nr) if by_bin is None else by_bin] = (
+            np.arange(nr) - np.repeat(bin_start[:-1], np.diff(bin_start)))
         sc = replace(sc, rpos=take_rows(sc.rpos, r_perm), rcov=take_rows(sc.rcov, r_perm),
                      rtime=sc.rtime[r_perm])
         plan = replace(plan, lam_r=plan.lam_r[r_perm], gamma_r=plan.gamma_r[r_perm])
@@ -142,8 +146,8 @@ def gate_checked(sc: Scene, threshold: float | None = None, *, prob: float | Non
         s, e = bin_start[k], bin_start[k + 1]
         if s == e:
             continue
-        if plan.on_reports:
-            queries = (by_bin[s:e], t_perm, t_perm)
+        if plan.on_reports:  # one bin: its reports are every report, in order
+            queries = (slice(0, nr) if by_bin is None else by_bin[s:e], t_perm, t_perm)
         else:
             queries = (slice(s, e), r_perm[s:e], rank[r_perm[s:e]])
         parts.append(_gate_bin(sc, plan, k, *queries, gamma, w_logdet, buckets))
@@ -253,10 +257,6 @@ def _bucket_ids(key: np.ndarray, buckets) -> tuple[np.ndarray, int]:
     return np.minimum(ids, k - 1), k
 
 
-def _slack(r: np.ndarray, coord_slack: float) -> np.ndarray:
-    return r * (1.0 + RADIUS_SLACK) + coord_slack
-
-
 def _gate_bin(sc: Scene, plan: _Plan, k: int, reports: np.ndarray | slice, q_ids: np.ndarray,
               q_rank: np.ndarray, gamma: float, w_logdet: float, buckets):
     """Exact pairs between every track and the reports of time bin k (rows ``reports`` of the
@@ -267,27 +267,25 @@ def _gate_bin(sc: Scene, plan: _Plan, k: int, reports: np.ndarray | slice, q_ids
     latency, and neighbouring queries then touch neighbouring cells); ``q_ids`` are their ids,
     ``q_rank`` their ranks among them. Grid points are identified by their scene row, which
     is their id (the gridded side is never permuted)."""
-    tracks = np.arange(sc.tpos.shape[0])
     t_mid = plan.t_lo + (2 * k + 1) * plan.width
     w = plan.width * (1.0 + RADIUS_SLACK)
     if sc.moving:
         dt_max = max_abs_dt(sc.ttime, t_mid - w, t_mid + w)
         sig = plan.reach.sigma(dt_max)
         tpos_k = sc.tpos + (t_mid - sc.ttime)[:, None] * sc.tvel
-    else:
-        sig, tpos_k = plan.reach.sigma(0.0), sc.tpos
+    else:  # sigma(0) is s_p itself
+        sig, tpos_k = plan.reach.s_p, sc.tpos
     lam_r = plan.lam_r[reports]
     g_r = plan.gamma_r[reports]
     if plan.on_reports:
         bid, nb = _bucket_ids(np.sqrt(lam_r), buckets)
         lam_b = _bucket_max(lam_r, bid, nb)
         g_b = _bucket_max(g_r, bid, nb)
-        g = np.minimum(g_b[None, :], plan.gamma_t[:, None])
-        rad = np.sqrt(np.maximum(g, 0.0) * (sig[:, None] ** 2 + lam_b[None, :]))
-        rad = _slack(rad + w * plan.speed[:, None], plan.coord_slack)
-        rad[(g < 0.0) | ~np.isfinite(rad)] = -1.0
+        rad = query_radii(sig * sig, lam_b, plan.speed, np.full(nb, w), plan.gamma_t, g_b,
+                          plan.coord_slack)
         cell = _bucket_cell(rad)
-        grid = build_grid(sc.rpos[reports], reports, bid, nb, cell)
+        grid = build_grid(sc.rpos[reports], None if isinstance(reports, slice) else reports,
+                          bid, nb, cell)
         rows = grid.members
         return query_grid(
             np.ascontiguousarray(tpos_k), rad, True, q_ids, q_rank, rows, *_grid_args(grid),
@@ -299,13 +297,10 @@ def _gate_bin(sc: Scene, plan: _Plan, k: int, reports: np.ndarray | slice, q_ids
     sig_b = _bucket_max(sig, bid, nb)
     spd_b = _bucket_max(plan.speed, bid, nb)
     g_t = _bucket_max(plan.gamma_t, bid, nb)  # loosest track-side bound per bucket
-    g = np.minimum(g_r[:, None], g_t[None, :])
     delta = np.abs(sc.rtime[reports] - t_mid) if sc.moving else np.zeros(lam_r.size)
-    rad = np.sqrt(np.maximum(g, 0.0) * (sig_b[None, :] ** 2 + lam_r[:, None]))
-    rad = _slack(rad + delta[:, None] * spd_b[None, :], plan.coord_slack)
-    rad[(g < 0.0) | ~np.isfinite(rad)] = -1.0
+    rad = query_radii(lam_r, sig_b * sig_b, delta, spd_b, g_r, g_t, plan.coord_slack)
     cell = _bucket_cell(rad)
-    grid = build_grid(tpos_k, tracks, bid, nb, cell)
+    grid = build_grid(tpos_k, None, bid, nb, cell)
     rows = grid.members
     return query_grid(
         sc.rpos[reports], rad, False, q_ids, q_rank, rows, *_grid_args(grid),

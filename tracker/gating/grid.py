@@ -9,6 +9,7 @@ over queries; nothing of size N_T x N_R is ever formed.
 
 from __future__ import annotations
 
+import math
 from contextlib import contextmanager
 from dataclasses import dataclass
 
@@ -16,7 +17,7 @@ import numba
 import numpy as np
 from numba import njit, prange
 
-from tracker.gating.exact import sym_d2_logdet
+from tracker.gating.exact import RADIUS_SLACK, sym_d2_logdet
 from tracker.gating.reach import projected_cov_entry
 
 # Cells per axis are capped so that linear keys fit in int64 even in 3-D.
@@ -48,10 +49,11 @@ class Grid:
     table: np.ndarray      # concatenated cell-start tables (local offsets)
 
 
-def build_grid(pos: np.ndarray, members: np.ndarray, bucket: np.ndarray, n_buckets: int,
+def build_grid(pos: np.ndarray, members: np.ndarray | None, bucket: np.ndarray, n_buckets: int,
                cell: np.ndarray) -> Grid:
-    """Grid over points ``pos`` (n, d) with global ids ``members``, bucket id per point and a
-    preferred cell edge per bucket (enlarged when a dense table would need too many cells)."""
+    """Grid over points ``pos`` (n, d) with global ids ``members`` (None: their rows), bucket id
+    per point and a preferred cell edge per bucket (enlarged when a dense table would need too
+    many cells)."""
     dim = pos.shape[1]
     if n_buckets == 1:
         order, seg = np.arange(pos.shape[0]), np.array([0, pos.shape[0]], dtype=np.int64)
@@ -97,11 +99,29 @@ def build_grid(pos: np.ndarray, members: np.ndarray, bucket: np.ndarray, n_bucke
             tables.append(np.zeros(0, dtype=np.int64))
         if not dense[b]:  # a dense bucket is searched through its table alone
             keys_all[seg[b]:seg[b + 1]] = keys[o]
-        members_all[seg[b]:seg[b + 1]] = members[o] if n_buckets == 1 else members[idx[o]]
+        rows = o if n_buckets == 1 else idx[o]
+        members_all[seg[b]:seg[b + 1]] = rows if members is None else members[rows]
         table_seg.append(table_seg[-1] + tables[-1].size)
     return Grid(origin, cells, dims, seg, keys_all, members_all, dense,
                 np.asarray(table_seg, dtype=np.int64),
                 tables[0] if len(tables) == 1 else np.concatenate(tables))
+
+
+@njit(cache=True)
+def query_radii(s2_q, s2_b, u_q, u_b, g_q, g_b, coord_slack):
+    """Coarse search radius (m) of each query in each bucket of the gridded set, (nq, K):
+    (sqrt(max(g, 0) (s2_q + s2_b)) + u_q u_b) (1 + RADIUS_SLACK) + coord_slack with
+    g = min(g_q, g_b) the pair's bound on gamma; -1 (skip the bucket) where g < 0 or the radius
+    is not finite. s2: variances (m²) bounding λmax of each side, u_q u_b: the motion term (m)."""
+    nq, nb = s2_q.shape[0], s2_b.shape[0]
+    rad = np.empty((nq, nb))
+    for i in range(nq):
+        for b in range(nb):
+            g = min(g_b[b], g_q[i])
+            r = (math.sqrt(max(g, 0.0) * (s2_q[i] + s2_b[b])) + u_q[i] * u_b[b]) \
+                * (1.0 + RADIUS_SLACK) + coord_slack
+            rad[i, b] = r if g >= 0.0 and math.isfinite(r) else -1.0
+    return rad
 
 
 def take_rows(a: np.ndarray, rows: np.ndarray) -> np.ndarray:
@@ -117,7 +137,9 @@ def take_rows(a: np.ndarray, rows: np.ndarray) -> np.ndarray:
 def _take_rows(a, rows):
     out = np.empty((rows.shape[0], a.shape[1]), a.dtype)
     for i in prange(rows.shape[0]):
-        out[i] = a[rows[i]]
+        r = rows[i]
+        for j in range(a.shape[1]):  # element by element: a row slice copy costs twice as much
+            out[i, j] = a[r, j]
     return out
 
 
@@ -228,10 +250,9 @@ def _scan_kernel(qpos, qrad, query_is_track, q_ids, q_rank, p_ids, origin, cell,
     counts = np.zeros(nq + 1, dtype=np.int64)
     no_i, no_f = np.empty(0, np.int64), np.empty(0)
     for i in prange(nq):
-        counts[i + 1] = _visit(i, qpos, qrad, query_is_track, q_ids, p_ids, origin, cell, dims,
-                               seg, keys, dense, table_seg, table, tpos, tvel, tcov, ttime, tq,
-                               rpos, rcov, rtime, moving, gamma, w_logdet, no_i, no_i, no_f, 0,
-                               _SCAN)
+        counts[i + 1] = _visit(i, qpos, qrad, query_is_track, p_ids, origin, cell, dims, seg,
+                               keys, dense, table_seg, table, tpos, tvel, tcov, ttime, tq, rpos,
+                               rcov, rtime, moving, gamma, w_logdet, no_i, no_f, 0, _SCAN)
     return np.cumsum(counts)
 
 
@@ -248,31 +269,47 @@ def _fill_kernel(cand, qpos, qrad, query_is_track, q_ids, q_rank, p_ids, origin,
     and ``p_ids`` (per grid position), grouped by query (by report id within a track query).
     """
     nq = qpos.shape[0]
-    buf_t = np.empty(cand[-1], dtype=np.int64)
-    buf_r = np.empty(cand[-1], dtype=np.int64)
+    buf_p = np.empty(cand[-1], dtype=np.int64)
     buf_d2 = np.empty(cand[-1])
     found = np.zeros(nq, dtype=np.int64)
     for i in prange(nq):
-        found[i] = _visit(i, qpos, qrad, query_is_track, q_ids, p_ids, origin, cell, dims,
-                              seg, keys, dense, table_seg, table, tpos, tvel, tcov, ttime, tq,
-                              rpos, rcov, rtime, moving, gamma, w_logdet, buf_t, buf_r, buf_d2,
-                              cand[i], _FILL)
-        if query_is_track:  # in parallel here, so that sorted_pairs finds sorted runs
-            _sort_run(buf_r, buf_d2, cand[i], cand[i] + found[i])
-    offs = np.zeros(nq + 1, dtype=np.int64)
-    for i in range(nq):
-        offs[q_rank[i] + 1] = found[i]
-    offs = np.cumsum(offs)
-    out_t = np.empty(offs[-1], dtype=np.int64)
-    out_r = np.empty(offs[-1], dtype=np.int64)
+        found[i] = _visit(i, qpos, qrad, query_is_track, p_ids, origin, cell, dims, seg, keys,
+                          dense, table_seg, table, tpos, tvel, tcov, ttime, tq, rpos, rcov, rtime,
+                          moving, gamma, w_logdet, buf_p, buf_d2, cand[i], _FILL)
+        if query_is_track and found[i] > 1:  # in parallel here, so that sorted_pairs finds sorted runs
+            _sort_run(buf_p, buf_d2, cand[i], cand[i] + found[i])
+    # Compact in query order first (sequential), then reorder by q_rank within the compacted
+    # pairs, which fit in cache: reordering straight from the candidate slots costs a cache
+    # miss per array and query with pairs.
+    hits = np.nonzero(found)[0]
+    n_hit = hits.shape[0]
+    h_off = np.zeros(n_hit + 1, dtype=np.int64)
+    h_off[1:] = np.cumsum(found[hits])
+    c_p = np.empty(h_off[-1], dtype=np.int64)
+    c_d2 = np.empty(h_off[-1])
+    for h in prange(n_hit):
+        s = cand[hits[h]] - h_off[h]
+        for k in range(h_off[h], h_off[h + 1]):  # element loops: a slice copy costs ~100 ns
+            c_p[k] = buf_p[s + k]
+            c_d2[k] = buf_d2[s + k]
+    by_rank = counting_order(q_rank[hits], nq)[0]
+    offs = np.zeros(n_hit + 1, dtype=np.int64)
+    for k in range(n_hit):
+        h = by_rank[k]
+        offs[k + 1] = offs[k] + h_off[h + 1] - h_off[h]
+    out_q = np.empty(offs[-1], dtype=np.int64)
+    out_p = np.empty(offs[-1], dtype=np.int64)
     out_d2 = np.empty(offs[-1])
-    for i in prange(nq):
-        at = offs[q_rank[i]]
-        for k in range(found[i]):
-            out_t[at + k] = buf_t[cand[i] + k]
-            out_r[at + k] = buf_r[cand[i] + k]
-            out_d2[at + k] = buf_d2[cand[i] + k]
-    return out_t, out_r, out_d2
+    for k in prange(n_hit):
+        h = by_rank[k]
+        q, at = q_ids[hits[h]], offs[k] - h_off[h]
+        for j in range(h_off[h], h_off[h + 1]):
+            out_q[at + j] = q
+            out_p[at + j] = c_p[j]
+            out_d2[at + j] = c_d2[j]
+    if query_is_track:
+        return out_q, out_p, out_d2
+    return out_p, out_q, out_d2
 
 
 # What _visit does with the points in the cells it visits.
@@ -280,11 +317,11 @@ _SCAN, _FILL = 0, 1
 
 
 @njit(cache=True, inline="always")
-def _visit(i, qpos, qrad, query_is_track, q_ids, p_ids, origin, cell, dims, seg, keys, dense,
+def _visit(i, qpos, qrad, query_is_track, p_ids, origin, cell, dims, seg, keys, dense,
            table_seg, table, tpos, tvel, tcov, ttime, tq, rpos, rcov, rtime, moving, gamma,
-           w_logdet, out_t, out_r, out_d2, at, mode):
+           w_logdet, out_p, out_d2, at, mode):
     """Query i against the grid: the number of candidates (``_SCAN``), or the number of exact
-    pairs, written from ``at`` on (``_FILL``)."""
+    pairs, their points' ids and d² written from ``at`` on (``_FILL``)."""
     dim = qpos.shape[1]
     n_buckets = cell.shape[0]
     found = 0
@@ -319,8 +356,7 @@ def _visit(i, qpos, qrad, query_is_track, q_ids, p_ids, origin, cell, dims, seg,
                     d2, ok = _pair_test(t, rep, tpos, tvel, tcov, ttime, tq, rpos, rcov, rtime,
                                         moving, gamma, w_logdet)
                     if ok:
-                        out_t[at + found] = q_ids[i] if query_is_track else p_ids[m]
-                        out_r[at + found] = p_ids[m] if query_is_track else q_ids[i]
+                        out_p[at + found] = p_ids[m]
                         out_d2[at + found] = d2
                         found += 1
     return found

@@ -124,3 +124,30 @@ def test_radii_over_four_decades():
         t_idx, r_idx = gate(tm, tc, rm, rc, threshold=9.21, orientation=orientation)
         assert t_idx.size > 100
         assert_same_pairs(t_idx, r_idx, *brute_force(tm, tc, rm, rc, gamma=9.21))
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 50), st.integers(1, 6), st.integers(0, 2**31))
+def test_query_radii_follow_the_numpy_formula(nq, nb, seed):
+    """The fused radius kernel against the numpy expression it replaced (bit for bit), with
+    negative and infinite gamma bounds skipping their buckets."""
+    rng = np.random.default_rng(seed)
+    s2_q, s2_b = rng.uniform(0, 1e4, nq), rng.uniform(0, 1e4, nb)
+    u_q, u_b = rng.uniform(0, 300, nq), rng.uniform(0, 5, nb)
+    g_q = rng.choice([-1.0, 9.21, 20.0, np.inf], nq)
+    g_b = rng.choice([-2.0, 9.21, 15.0], nb)
+    got = grid.query_radii(s2_q, s2_b, u_q, u_b, g_q, g_b, 1e-9)
+    g = np.minimum(g_b[None, :], g_q[:, None])
+    with np.errstate(invalid="ignore"):
+        want = np.sqrt(np.maximum(g, 0.0) * (s2_q[:, None] + s2_b[None, :])) + u_q[:, None] * u_b[None, :]
+        want = want * (1.0 + grid.RADIUS_SLACK) + 1e-9
+    want[(g < 0.0) | ~np.isfinite(want)] = -1.0
+    assert np.array_equal(got, want)
+
+
+@pytest.mark.parametrize("shape", [(0, 2), (7, 2), (5, 2, 2), (9, 4, 4), (3, 6)])
+def test_take_rows_is_fancy_indexing(shape):
+    rng = np.random.default_rng(0)
+    a = rng.random(shape)
+    rows = rng.integers(0, max(shape[0], 1), 11) if shape[0] else np.zeros(0, np.int64)
+    assert np.array_equal(grid.take_rows(a, rows), a[rows])
