@@ -431,6 +431,14 @@ def posterior_median(values: np.ndarray, prob: np.ndarray) -> int:
     return int(values[min(int(np.searchsorted(np.cumsum(prob), 0.5 - 1e-12)), len(values) - 1)])
 
 
+def _batch_dataset(prior_path: str | os.PathLike, seed: int, config: ExperimentConfig) -> tuple:
+    """Data set ``seed``'s reports, its association context and its S models keyed by (label, τ or None)."""
+    prior = _load_prior(str(prior_path))
+    reports = _scenario(prior, seed, config).reports
+    ctx = _context(str(prior_path), reports, config, CachedIntegrator(prior, partial(integrate_checked, method=config.integrator)))
+    return reports, ctx, {(label, tau if label == "exp" else None): s for label, tau, s in _settings(config)}
+
+
 def batch_nd(prior_path: str | os.PathLike, seed: int, config: ExperimentConfig,
              wanted: Sequence[tuple[str, str, float | None]]) -> list[dict]:
     """The posterior of N_D for data set ``seed`` under batch's model, per (associating variant,
@@ -438,10 +446,7 @@ def batch_nd(prior_path: str | os.PathLike, seed: int, config: ExperimentConfig,
     sampling sweeps (one split–merge proposal each) from the MAP partition of :func:`run_dataset`.
     Records: seed, assoc_variant, s_model, tau (+inf for "poisson"), nd_hat_bayes (posterior median),
     nd_posterior_mean."""
-    prior = _load_prior(str(prior_path))
-    reports = _scenario(prior, seed, config).reports
-    ctx = _context(str(prior_path), reports, config, CachedIntegrator(prior, partial(integrate_checked, method=config.integrator)))
-    models = {(label, tau if label == "exp" else None): s for label, tau, s in _settings(config)}
+    reports, ctx, models = _batch_dataset(prior_path, seed, config)
     out = []
     for variant, label, tau in wanted:
         s_model = models[(label, tau)]
@@ -464,10 +469,7 @@ def map_convergence(prior_path: str | os.PathLike, seed: int, config: Experiment
     ``split_merge`` proposals each and ICM, from greedy's partition and from all singletons ``restarts``
     times, best state kept. Records: seed, variant, s_model, tau, short_log_posterior, long_log_posterior
     (ln p(Λ|Z) + const under batch's model)."""
-    prior = _load_prior(str(prior_path))
-    reports = _scenario(prior, seed, config).reports
-    ctx = _context(str(prior_path), reports, config, CachedIntegrator(prior, partial(integrate_checked, method=config.integrator)))
-    models = {(label, tau if label == "exp" else None): s for label, tau, s in _settings(config)}
+    reports, ctx, models = _batch_dataset(prior_path, seed, config)
     out = []
     for variant, label, tau in wanted:
         s_model = models[(label, tau)]
