@@ -26,6 +26,7 @@ import os
 import resource
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -135,6 +136,71 @@ def child(n: int, n_reports: int, clusters: list[int], cluster_cells: float, cac
     }
 
 
+def write_file_scene(folder: str, n: int, n_targets: int, n_reports: int) -> None:
+    """An n² prior file (bench_tracker's ridges and lakes, 40 m cells) and a report stream whose targets
+    lie in two 40 km squares of it (saved as reports.npz): what a prior larger than memory serves."""
+    from bench.bench_tracker import reports_of, synthetic_prior
+
+    prior = synthetic_prior(n * 40.0)
+    prior.write(Path(folder) / "prior.tif")
+    rng = np.random.default_rng(4)
+    x0, y0 = prior.grid.bounds[:2]
+    boxes = [(x0 + a, y0 + b, x0 + a + 40_000.0, y0 + b + 40_000.0) for a, b in ((40_000.0, 40_000.0), (n * 40.0 - 90_000.0, n * 20.0))]
+    targets = np.concatenate([prior.sample(n_targets // 2, rng, box) for box in boxes])
+    truth = rng.integers(0, targets.shape[0], n_reports)
+    means, covs = reports_of(targets[truth], rng)
+    np.savez(Path(folder) / "reports.npz", means=means, covs=covs, truth=truth)
+
+
+def track_file(folder: str, windowed: bool) -> dict:
+    """TT on the file scene's stream, the prior read windowed or into memory (the lazy pyramid either
+    way: the grid is above MAX_CELLS); assignments saved beside it."""
+    from pipeline.prior import TerrainPrior
+    from tracker.association.greedy import Tracker
+    from tracker.types.reports import Reports
+
+    t0 = time.perf_counter()
+    prior = TerrainPrior.read(Path(folder) / "prior.tif", windowed=windowed)
+    read_s = time.perf_counter() - t0
+    z = np.load(Path(folder) / "reports.npz")
+    reports = Reports.create(z["means"], z["covs"], np.arange(z["truth"].size, dtype=float), z["truth"])
+    tr = Tracker(prior, "TT", tau=-1.7, off_prior="skip")
+    t0 = time.perf_counter()
+    out = np.concatenate([tr.update(reports.subset(slice(s, s + 50_000))) for s in range(0, len(reports), 50_000)])
+    track_s = time.perf_counter() - t0
+    np.save(Path(folder) / f"assign_{int(windowed)}.npy", out)
+    return {"windowed": windowed, "read_s": read_s, "track_s": track_s, "n_detected": int(tr.n_detected_),
+            "density_gib": 0.0 if windowed else prior.density.nbytes / 2**30,
+            "peak_rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20}
+
+
+def _child(*args: str) -> dict:
+    proc = subprocess.run([sys.executable, "-m", "bench.bench_lazy", *args], cwd=ROOT, capture_output=True, text=True, check=False)
+    if proc.returncode != 0:
+        raise RuntimeError(f"lazy-pyramid child {args[0]} failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1]) if proc.stdout.strip() else {}
+
+
+def file_rows(quick: bool) -> tuple[dict, list[dict]]:
+    """TT on a prior file above MAX_CELLS read windowed, against the same file read into memory (each in
+    its own process, for its peak RSS): identical decisions, less memory."""
+    n, n_targets, n_reports = (5_100, 2_000, 20_000) if quick else (8_000, 20_000, 200_000)
+    with tempfile.TemporaryDirectory() as folder:
+        _child("write", folder, str(n), str(n_targets), str(n_reports))
+        runs = [_child("track", folder, str(int(w))) for w in (True, False)]
+        same = bool(np.array_equal(np.load(Path(folder) / "assign_1.npy"), np.load(Path(folder) / "assign_0.npy")))
+    win, mem = runs
+    out = {"n": n, "n_targets": n_targets, "n_reports": n_reports, "windowed": win, "in_memory": mem, "same_decisions": same}
+    rows = [{"what": f"TT on a {n:,}² prior file ({n * n / 1e6:,.0f} M cells), {n_reports:,} reports of {n_targets:,} targets in two "
+                     f"40 km squares, prior read windowed (lazy pyramid; per-cell integrals from file windows)",
+             "value": f"{win['track_s']:.1f} s track + {win['read_s']:.1f} s read (checks in bands), {win['peak_rss_gib']:.2f} GiB peak; "
+                      f"in-memory read of the same file (same run): {mem['track_s']:.1f} s + {mem['read_s']:.1f} s, "
+                      f"{mem['peak_rss_gib']:.2f} GiB peak ({mem['density_gib']:.2f} GiB of it the density); decisions "
+                      f"{'identical' if same else 'DIFFER'}",
+             "goal": "identical decisions; peak below the in-memory read's", "ok": bool(same and win["peak_rss_gib"] < mem["peak_rss_gib"])}]
+    return out, rows
+
+
 def run(quick: bool = False) -> dict:
     n, n_reports = (10_000, 100_000) if quick else (50_000, 1_000_000)
     clusters = "100,30,10"
@@ -175,9 +241,16 @@ def run(quick: bool = False) -> dict:
     table.append({"what": f"lazy = whole pyramid on the 2,000² prior ({ident['n']:,} integrals of the stream)",
                   "value": f"{ident['differ']} differ (largest relative difference {ident['max_rel']:.1e})",
                   "goal": "identical", "ok": ident["differ"] == 0})
+    out["file"], rows = file_rows(quick)
+    table.extend(rows)
     return {"lazy": out, "table": table}
 
 
 if __name__ == "__main__":
-    n, reports, clusters, cells, cache = sys.argv[1:6]
-    print(json.dumps(child(int(n), int(reports), [int(c) for c in clusters.split(",")], float(cells), float(cache))))
+    if sys.argv[1] == "write":
+        write_file_scene(sys.argv[2], *(int(a) for a in sys.argv[3:6]))
+    elif sys.argv[1] == "track":
+        print(json.dumps(track_file(sys.argv[2], bool(int(sys.argv[3])))))
+    else:
+        n, reports, clusters, cells, cache = sys.argv[1:6]
+        print(json.dumps(child(int(n), int(reports), [int(c) for c in clusters.split(",")], float(cells), float(cache))))

@@ -49,15 +49,23 @@ def scenario(prior: TerrainPrior, n_targets: int, n_reports: int, seed: int = 0)
     y = g.transform.f - (rows + rng.random(n_targets)) * g.dy
     targets = np.stack([x, y], 1)
     truth = rng.integers(0, n_targets, n_reports)
-    ang = rng.uniform(0, np.pi, n_reports)
-    sd = rng.uniform(5.0, 60.0, (n_reports, 2))
+    means, covs = reports_of(targets[truth], rng)
+    return Reports.create(means, covs, np.arange(n_reports, dtype=float), truth)
+
+
+def reports_of(positions: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Report means and covariances (m, m²) of targets at ``positions`` (n, 2): standard deviations
+    5-60 m along a random orientation, means drawn from them."""
+    n = positions.shape[0]
+    ang = rng.uniform(0, np.pi, n)
+    sd = rng.uniform(5.0, 60.0, (n, 2))
     c, s = np.cos(ang), np.sin(ang)
-    covs = np.empty((n_reports, 2, 2))
+    covs = np.empty((n, 2, 2))
     covs[:, 0, 0] = c * c * sd[:, 0] ** 2 + s * s * sd[:, 1] ** 2
     covs[:, 1, 1] = s * s * sd[:, 0] ** 2 + c * c * sd[:, 1] ** 2
     covs[:, 0, 1] = covs[:, 1, 0] = c * s * (sd[:, 0] ** 2 - sd[:, 1] ** 2)
-    noise = np.einsum("kij,kj->ki", np.linalg.cholesky(covs), rng.standard_normal((n_reports, 2)))
-    return Reports.create(targets[truth] + noise, covs, np.arange(n_reports, dtype=float), truth)
+    noise = np.einsum("kij,kj->ki", np.linalg.cholesky(covs), rng.standard_normal((n, 2)))
+    return positions + noise, covs
 
 
 def _stream(prior: TerrainPrior, reports: Reports, variant: str, **kw) -> tuple[float, Tracker, np.ndarray]:

@@ -30,6 +30,7 @@ from pipeline.prior.write import (
     table_hash,
     write_prior,
 )
+from pipeline.prior.windowed import WINDOWED_CELLS, WindowedDensity
 
 DENSITY_TOL = 1e-5
 """How far a read prior's integral of r, and its tables' last row and column totals (relative to the
@@ -74,15 +75,21 @@ def _without_layout_note() -> Iterator[None]:
         log.removeFilter(note)
 
 
-def _read_geotiff(path: Path) -> tuple[Grid, np.ndarray, dict, list[str], str]:
-    """Grid, float64 density, model, table digests and rebuild hint of a prior GeoTIFF; PriorError unless it carries a
-    prior's tags and a finite, non-negative density that integrates to 1 (within DENSITY_TOL)."""
+def _read_geotiff(path: Path, windowed: bool | None) -> tuple[Grid, np.ndarray | WindowedDensity, dict, list[str], str, tuple]:
+    """Grid, density (float64 array, or a :class:`WindowedDensity` when ``windowed``; None: above
+    :data:`WINDOWED_CELLS` cells), model, table digests, rebuild hint and the density's row and column
+    sums of r and r² mass (:func:`_density_sums`); PriorError unless it carries a prior's tags and a
+    finite, non-negative density that integrates to 1 (within DENSITY_TOL)."""
     try:
         with _without_layout_note(), rasterio.open(path) as src:
             tags = src.tags()
             profile = (src.count, src.dtypes[0])
-            density = src.read(1).astype(np.float64) if profile == (1, "float32") else None
             crs, transform, shape = src.crs, src.transform, src.shape
+            if windowed is None:
+                windowed = shape[0] * shape[1] > WINDOWED_CELLS
+            density = None
+            if profile == (1, "float32"):
+                density = WindowedDensity(path, shape, np.nan) if windowed else src.read(1).astype(np.float64)
     except rasterio.errors.RasterioError as exc:
         raise PriorError(f"{path}: cannot read prior GeoTIFF: {exc}") from exc
     hint = _rebuild_hint(path, {})
@@ -103,12 +110,35 @@ def _read_geotiff(path: Path) -> tuple[Grid, np.ndarray, dict, list[str], str]:
         grid = Grid(crs, transform, *shape)
     except GridError as exc:
         raise PriorError(f"{path}: {exc}; {hint}") from exc
-    if not (density.min() >= 0 and np.isfinite(density.max())):
-        raise PriorError(f"{path}: density must be finite and >= 0; {_bad_cells(~(density >= 0) | ~np.isfinite(density))}; {hint}")
-    total = float(density.sum()) * grid.cell_area
+    strips = density.strips() if isinstance(density, WindowedDensity) else [(0, density)]
+    total, top, sums = _density_sums(strips, grid.cell_area, f"{path}: density must be finite and >= 0; {{}}; {hint}")
+    if isinstance(density, WindowedDensity):
+        density.max = top
     if not abs(total - 1.0) <= DENSITY_TOL:
         raise PriorError(f"{path}: density integrates to {total:.9g}, not 1 (tolerance {DENSITY_TOL:g}); {hint}")
-    return grid, density, model, [tags[t] for t in TABLE_TAGS], hint
+    return grid, density, model, [tags[t] for t in TABLE_TAGS], hint, sums
+
+
+def _density_sums(strips, cell_area: float, bad_message: str) -> tuple[float, float, tuple]:
+    """One pass over (first row, values) bands of a density: its integral, its largest value and, for the
+    tables' check, ((column sums, row sums) of the cell mass of r, the same of r²). PriorError
+    (``bad_message`` with the bad cells) at a negative or non-finite cell."""
+    total, top, cols, cols2, rows, rows2 = 0.0, 0.0, 0.0, 0.0, [], []
+    for r0, d in strips:
+        # min/max first (NaN propagates): no full-size temporaries unless something is wrong
+        if not (d.min() >= 0 and np.isfinite(d.max())):
+            bad = ~(d >= 0) | ~np.isfinite(d)
+            rows_bad, cols_bad = np.nonzero(bad)
+            where = f"{bad.sum()} bad cells, first at row {r0 + rows_bad[0]}, col {cols_bad[0]}"
+            # a windowed read stops at the first band that has any: the count is that band's
+            raise PriorError(bad_message.format(where if r0 == 0 else f"{where} (in rows {r0}-{r0 + d.shape[0] - 1})"))
+        mass = d * cell_area
+        total += float(d.sum()) * cell_area
+        top = max(top, float(d.max()))
+        cols, rows = cols + mass.sum(axis=0), [*rows, mass.sum(axis=1)]
+        mass *= d
+        cols2, rows2 = cols2 + mass.sum(axis=0), [*rows2, mass.sum(axis=1)]
+    return total, top, ((cols, np.concatenate(rows)), (cols2, np.concatenate(rows2)))
 
 
 def _read_table(path: Path, shape: tuple[int, int], hint: str) -> np.memmap:
@@ -144,9 +174,10 @@ def _read_table(path: Path, shape: tuple[int, int], hint: str) -> np.memmap:
     return np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=shape)
 
 
-def _check_table(table: np.ndarray, path: Path, tif: Path, digest: str, values: np.ndarray, hint: str) -> None:
+def _check_table(table: np.ndarray, path: Path, tif: Path, digest: str, sums: tuple[np.ndarray, np.ndarray], hint: str) -> None:
     """PriorError unless ``table`` is finite, zero-padded, hashes to ``digest`` (what GeoTIFF ``tif``
-    records of its build) and its last row and column are the running totals of ``values`` (cell mass of r or r^2)."""
+    records of its build) and its last row and column are the running totals of ``sums`` (the column and row
+    sums of the cell mass of r or r^2)."""
     h = table_hash()
     step = max(1, SCAN_ROWS_BYTES // table[0].nbytes)
     for r in range(0, table.shape[0], step):
@@ -163,8 +194,8 @@ def _check_table(table: np.ndarray, path: Path, tif: Path, digest: str, values: 
             f"mixed from two builds or damaged; {hint}"
         )
     scale = DENSITY_TOL * max(float(table[-1, -1]), np.finfo(float).tiny)
-    for axis, totals in ((0, table[-1, 1:]), (1, table[1:, -1])):
-        off = float(np.abs(np.cumsum(values.sum(axis=axis)) - totals).max())
+    for line, totals in zip(sums, (table[-1, 1:], table[1:, -1]), strict=True):
+        off = float(np.abs(np.cumsum(line) - totals).max())
         if not off <= scale:
             raise PriorError(f"{path}: table totals differ from the density's by {off:.3g} (tolerance {scale:.3g}); {hint}")
 
@@ -267,6 +298,16 @@ class TerrainPrior:
         self.sat2 = sat2
         self.model = dict(model or {})
 
+    @property
+    def max_density(self) -> float:
+        """The largest cell value of r, per m² (a windowed density knows it from its reading pass)."""
+        top = getattr(self.density, "max", None)
+        if isinstance(top, float):
+            return top
+        if not hasattr(self, "_max_density"):
+            self._max_density = float(np.max(self.density))
+        return self._max_density
+
     @classmethod
     def from_array(cls, r: np.ndarray, grid: Grid, model: dict | None = None, reuse: bool = False) -> TerrainPrior:
         """Normalise a non-negative (H, W) array of relative likelihoods into a density per m^2; with
@@ -304,8 +345,10 @@ class TerrainPrior:
         return write_prior(path, self.grid, self.model, strips)
 
     @classmethod
-    def read(cls, path: str | Path) -> TerrainPrior:
-        """Load a prior written by :meth:`write` (tables memory-mapped), after checking it is one: the
+    def read(cls, path: str | Path, windowed: bool | None = None) -> TerrainPrior:
+        """Load a prior written by :meth:`write` (tables memory-mapped; the density in memory, or read
+        window by window (:class:`~pipeline.prior.windowed.WindowedDensity`) when ``windowed``, by default
+        for grids above :data:`~pipeline.prior.windowed.WINDOWED_CELLS` cells), after checking it is one: the
         GeoTIFF's prior tags, a finite non-negative density integrating to 1, and two complete float64
         tables that hash to the checksums its build recorded and total up to its density. Anything else
         (a plain GeoTIFF, a set mixed from two builds, a damaged or foreign table) is a PriorError naming
@@ -318,12 +361,11 @@ class TerrainPrior:
                     f"{p}: missing; a prior is prior.tif plus prior.sat.npy and prior.sat2.npy beside it; "
                     f"{_rebuild_hint(path, {})}"
                 )
-        grid, density, model, digests, hint = _read_geotiff(path)
+        grid, density, model, digests, hint, sums = _read_geotiff(path, windowed)
         shape = (grid.height + 1, grid.width + 1)
         tables = [_read_table(p, shape, hint) for p in (sat_p, sat2_p)]
-        mass = density * grid.cell_area
-        for table, p, digest, values in zip(tables, (sat_p, sat2_p), digests, (mass, mass * density), strict=True):
-            _check_table(table, p, path, digest, values, hint)
+        for table, p, digest, line_sums in zip(tables, (sat_p, sat2_p), digests, sums, strict=True):
+            _check_table(table, p, path, digest, line_sums, hint)
         return cls(grid, density, *tables, model)
 
     def sample(

@@ -135,7 +135,7 @@ _RMAX_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 def _log_rmax(prior: TerrainPrior) -> float:
     """ln max r (per m²) plus the terrace slack, once per prior object (experiments build many trackers)."""
     if prior not in _RMAX_CACHE:
-        _RMAX_CACHE[prior] = math.log(float(np.max(prior.density))) + _RMAX_SLACK
+        _RMAX_CACHE[prior] = math.log(prior.max_density) + _RMAX_SLACK
     return _RMAX_CACHE[prior]
 
 

@@ -32,7 +32,7 @@ from tracker.integrate.terraces import (
     near_grid,
     pixel_gaussians,
 )
-from tracker.integrate.tiny import TINY, few_cell_integrals, is_few_cells, is_tiny, tiny_integrals
+from tracker.integrate.tiny import READ_SPAN, TINY, few_cell_integrals, is_few_cells, is_tiny, tiny_integrals
 from tracker.types.reports import MAX_CONDITION, check_gaussians
 
 __all__ = [
@@ -44,6 +44,7 @@ __all__ = [
     "TINY",
     "Integrator",
     "covered_mass",
+    "cell_integrals",
     "integrate",
     "integrate_checked",
     "reference_integrate",
@@ -147,9 +148,8 @@ def _integrate(prior, means, covs, squared, method, n_terraces, n_strips, mass, 
     tiny = is_tiny(cuu, cuv, cvv)
     rest = np.flatnonzero(~tiny)
     if rest.size < means.shape[0]:
-        field = np.asarray(prior.density, dtype=np.float64)
         idx = np.flatnonzero(tiny)
-        result[idx] = tiny_integrals(field * field if squared else field, *(a[idx] for a in (uc, vc, cuu, cuv, cvv)))
+        result[idx] = cell_integrals(prior, tiny_integrals, squared, *(a[idx] for a in (uc, vc, cuu, cuv, cvv)))
         uc, vc, cuu, cuv, cvv = (a[rest] for a in (uc, vc, cuu, cuv, cvv))
     _integrate_rest(prior, uc, vc, cuu, cuv, cvv, squared, method, n_terraces, n_strips, mass, shear, scheme, result, rest)
     bad = np.flatnonzero(~np.isfinite(result))
@@ -190,11 +190,40 @@ def _integrate_rest(prior, uc, vc, cuu, cuv, cvv, squared, method, n_terraces, n
         # Gaussians of a few cells: exact per-cell masses, which terraces cannot follow on a rough field.
         few = rest[is_few_cells(cuu[rest], cuv[rest], cvv[rest])]
         if few.size:
-            field = np.asarray(prior.density, dtype=np.float64)
-            result[few] = few_cell_integrals(field * field if squared else field, *(a[few] for a in (uc, vc, cuu, cuv, cvv)))
+            result[few] = cell_integrals(prior, few_cell_integrals, squared, *(a[few] for a in (uc, vc, cuu, cuv, cvv)))
             rest = np.setdiff1d(rest, few, assume_unique=True)
     if rest.size:
         result[rest] = integrate_terraces(
             prior, *(a[rest] for a in (uc, vc, cuu, cuv, cvv)), squared, n_terraces, n_strips, mass, shear, scheme
         )
     out[where] = result
+
+
+def cell_integrals(prior: TerrainPrior, kernel, squared: bool, uc, vc, cuu, cuv, cvv) -> np.ndarray:
+    """``kernel`` (:func:`~tracker.integrate.tiny.tiny_integrals` or
+    :func:`~tracker.integrate.tiny.few_cell_integrals`) on the prior's cells (r, or r² when ``squared``).
+    A windowed density (a prior larger than memory) is read per file block of the Gaussians' means, each
+    window covering every cell its Gaussians read, so the integrals are the in-memory ones."""
+    density = prior.density
+    if isinstance(density, np.ndarray):
+        field = np.asarray(density, dtype=np.float64)
+        return kernel(field * field if squared else field, 0, 0, uc, vc, cuu, cuv, cvv)
+    out = np.empty(uc.shape[0])
+    h, w = prior.grid.shape
+    su, sv = np.sqrt(cuu) * READ_SPAN + 2.0, np.sqrt(cvv) * READ_SPAN + 2.0
+    c_lo, c_hi = np.floor(uc - su), np.floor(uc + su) + 1.0
+    r_lo, r_hi = np.floor(vc - sv), np.floor(vc + sv) + 1.0
+    side = WINDOW_BLOCK
+    keys = np.clip(np.floor(vc / side), -1, h // side + 1) * (w // side + 3) + np.clip(np.floor(uc / side), -1, w // side + 1)
+    order = np.argsort(keys, kind="stable")
+    starts = np.flatnonzero(np.r_[True, np.diff(keys[order]) != 0])
+    for group in np.split(order, starts[1:]):
+        r0, r1 = int(max(r_lo[group].min(), 0)), int(min(r_hi[group].max(), h))
+        c0, c1 = int(max(c_lo[group].min(), 0)), int(min(c_hi[group].max(), w))
+        field = density[r0:max(r1, r0), c0:max(c1, c0)]
+        out[group] = kernel(field * field if squared else field, r0, c0, *(a[group] for a in (uc, vc, cuu, cuv, cvv)))
+    return out
+
+
+WINDOW_BLOCK = 256
+"""Cells per side of the blocks of means whose cells :func:`cell_integrals` reads in one window."""

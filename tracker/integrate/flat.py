@@ -29,6 +29,8 @@ from tracker.integrate.terraces import pixel_gaussians
 
 TILE = 8
 """Cells per tile side."""
+STRIP_CELLS = 1 << 22
+"""Cells of the density read at a time while the tile bounds are made."""
 K_SIGMA = 6.0
 """Half-width of the Gaussian's box, in marginal standard deviations."""
 TAIL = 4.0 * 0.5 * math.erfc(K_SIGMA / math.sqrt(2.0))
@@ -56,13 +58,17 @@ def tiles(prior: TerrainPrior, squared: bool = False) -> Tiles:
     """The prior's tile bounds of r (or r², ``squared``), once per prior object."""
     cache = _TILES.setdefault(prior, {})
     if squared not in cache:
-        r = np.asarray(prior.density, dtype=np.float64)
-        h, w = r.shape
+        h, w = prior.density.shape
         th, tw = -(-h // TILE), -(-w // TILE)
-        padded = np.full((th * TILE, tw * TILE), np.nan)
-        padded[:h, :w] = r * r if squared else r
-        blocks = padded.reshape(th, TILE, tw, TILE)
-        lo, hi = np.nanmin(blocks, axis=(1, 3)), np.nanmax(blocks, axis=(1, 3))
+        lo, hi = np.empty((th, tw)), np.empty((th, tw))
+        rows = TILE * max(1, STRIP_CELLS // (TILE * max(w, 1)))
+        for r0 in range(0, h, rows):  # bands of tile rows: a windowed density is never read whole
+            r = np.asarray(prior.density[r0 : r0 + rows, 0:w], dtype=np.float64)
+            padded = np.full((-(-r.shape[0] // TILE) * TILE, tw * TILE), np.nan)
+            padded[: r.shape[0], :w] = r * r if squared else r
+            blocks = padded.reshape(-1, TILE, tw, TILE)
+            t0 = r0 // TILE
+            lo[t0 : t0 + blocks.shape[0]], hi[t0 : t0 + blocks.shape[0]] = np.nanmin(blocks, axis=(1, 3)), np.nanmax(blocks, axis=(1, 3))
         cache[squared] = Tiles(lo, hi, float(hi.max()) if hi.size else 0.0, (h, w))
     return cache[squared]
 

@@ -55,6 +55,9 @@ _BLOCK = ss.BLOCK
 BORDER = 1e-9
 """Relative margin around S0 within which a Gaussian's smaller σ may fall on either side of the
 kernel's fine/pyramid test (its rounding): it is planned both ways."""
+FINE_BLOCK = 256
+"""Cells per side of the blocks of means whose Gaussians finer than level 0 read one window of the
+source together (without an in-memory field)."""
 MISSING = 0
 """The pool's slot that the block tables point at for a block not built (or evicted): all NaN, so a
 look-up there gives NaN (the kernel needs no test; the caller builds the tiles and asks again)."""
@@ -77,8 +80,8 @@ class LazyPyramid:
     levels 0-3 is ``blocks`` x ``blocks`` kernel blocks (:data:`SIDE` nodes a side by default), fewer
     above (:meth:`level_blocks`). ``tiles_built`` and ``cells_read`` count the work so far. ``field``,
     the (H, W) float64 values (r or r²) in memory, serves Gaussians narrower than the finest level
-    (smoothed on the fly from the cells, as the whole pyramid does); without it those are left to
-    the caller (look-ups 0).
+    (smoothed on the fly from the cells, as the whole pyramid does); without it they are smoothed
+    from windows of ``source`` around them, with the same numbers.
     """
 
     def __init__(self, source: CellSource, squared: bool = False, cache_bytes: int = CACHE_BYTES,
@@ -290,8 +293,7 @@ class LazyPyramid:
     def integrate_pixels(self, uc: np.ndarray, vc: np.ndarray, cuu: np.ndarray, cuv: np.ndarray, cvv: np.ndarray
                          ) -> tuple[np.ndarray, np.ndarray]:
         """As :func:`tracker.integrate.scalespace.integrate_pixels`: (values, look-ups per integral),
-        look-ups 0 for Gaussians left to the caller (too eccentric, or finer than the finest level
-        without :attr:`field`)."""
+        look-ups 0 for Gaussians left to the caller (too eccentric)."""
         n = uc.shape[0]
         out = np.zeros(n)
         counts = np.zeros(n, np.int64)
@@ -307,18 +309,44 @@ class LazyPyramid:
             # The kernel's own test (λ₂ < S0², in its rounding) may go either way within 1e-9 of S0:
             # such Gaussians count as fine here and get level-0 tiles planned (_tiles_of).
             fine = smin[order] < ss.S0 * (1.0 + BORDER)
-            if self.field is None and fine.any():
-                order = order[~fine]  # left to the caller: counts stay 0
-            field = self.field if self.field is not None else np.zeros((1, 1))
-            todo = order
-            for widen in (0, 1, 2):
-                if not todo.size:
-                    break
-                self._run(field, todo, uc, vc, cuu, cuv, cvv, widen, out, counts)
-                todo = todo[np.isnan(out[todo])]
-            if todo.size:
-                raise RuntimeError(f"LazyPyramid: {todo.size} integrals still miss tiles after widening the plan")
+            if self.field is not None:
+                batches = [(self.field, ss.whole_frame(self.field), order)]
+            else:  # the coarse ones read no cells; the fine ones read windows of the source
+                batches = [(np.zeros((1, 1)), np.array([0, 0, h, w], np.int64), order[~fine]),
+                           *self._fine_windows(order[fine], uc, vc, cuu, cuv, cvv)]
+            for values, frame, todo in batches:
+                for widen in (0, 1, 2):
+                    if not todo.size:
+                        break
+                    self._run(values, frame, todo, uc, vc, cuu, cuv, cvv, widen, out, counts)
+                    todo = todo[np.isnan(out[todo])]
+                if todo.size:
+                    raise RuntimeError(f"LazyPyramid: {todo.size} integrals still miss tiles after widening the plan")
         return out, counts
+
+    def _fine_windows(self, idx: np.ndarray, uc, vc, cuu, cuv, cvv):
+        """(values, frame, Gaussians) per block of :data:`FINE_BLOCK` cells of the means of the Gaussians
+        ``idx`` (finer than level 0), each with the source's cells that its Gaussians' on-the-fly
+        smoothing reads (:func:`~tracker.integrate.scalespace._window`: 5 σ_minor around rule points
+        within GH_SPAN σ_major of the mean), so they are the numbers of the whole field."""
+        if not idx.size:
+            return
+        h, w = self.shape
+        a, b, c = cuu[idx], cuv[idx], cvv[idx]
+        m, dd = 0.5 * (a + c), 0.5 * (a - c)
+        rad = np.sqrt(dd * dd + b * b)
+        reach = GH_SPAN * np.sqrt(m + rad) + 5.0 * np.sqrt(np.maximum(m - rad, 0.0)) + 3.0
+        u, v = uc[idx], vc[idx]
+        keys = np.clip(np.floor(v / FINE_BLOCK), -1, h // FINE_BLOCK + 1) * (w // FINE_BLOCK + 3) + np.clip(np.floor(u / FINE_BLOCK), -1, w // FINE_BLOCK + 1)
+        order = np.argsort(keys, kind="stable")
+        starts = np.flatnonzero(np.r_[True, np.diff(keys[order]) != 0])
+        for group in np.split(order, starts[1:]):
+            r0 = int(np.clip(np.floor((v[group] - reach[group]).min()), 0, h))
+            r1 = int(np.clip(np.floor((v[group] + reach[group]).max()) + 1, r0, h))
+            c0 = int(np.clip(np.floor((u[group] - reach[group]).min()), 0, w))
+            c1 = int(np.clip(np.floor((u[group] + reach[group]).max()) + 1, c0, w))
+            values = self._cells(r0, r1, c0, c1) if r1 > r0 and c1 > c0 else np.zeros((1, 1))
+            yield values, np.array([r0, c0, h, w], np.int64), idx[group]
 
     def _tiles_of(self, idx: np.ndarray, uc, vc, cuu, cuv, cvv, widen: int) -> np.ndarray:
         """Keys k << 40 | tv << 20 | tu of the tiles the Gaussians ``idx`` read (their level ± ``widen``)."""
@@ -349,8 +377,9 @@ class LazyPyramid:
                 keys.append(_tile_keys(int(lv), lo_u, hi_u, lo_v, hi_v))
         return np.unique(np.concatenate(keys)) if keys else np.zeros(0, np.int64)
 
-    def _run(self, field, todo, uc, vc, cuu, cuv, cvv, widen, out, counts) -> None:
-        """Integrals ``todo`` (in kernel order), in chunks whose tiles fit half the pool at once."""
+    def _run(self, field, frame, todo, uc, vc, cuu, cuv, cvv, widen, out, counts) -> None:
+        """Integrals ``todo`` (in kernel order), in chunks whose tiles fit half the pool at once; ``field``
+        and ``frame``: the cells fine Gaussians read (:func:`~tracker.integrate.scalespace._window`)."""
         room = self.n_slots // 2
         blocks = np.array([self.level_blocks(k) ** 2 for k in range(len(self._geometry))])
         stack = [todo]
@@ -370,7 +399,7 @@ class LazyPyramid:
                         self._pinned_blocks += self.level_blocks(key[0]) ** 2
                 p = self.packed()
                 out[chunk] = np.nan  # stays NaN only if the kernel found a block missing
-                ss._kernel(field, ss.PHI_TABLE, p.coef, self.slots, p.scale, p.step, p.u0, p.v0, p.nu, p.nv, p.offset,
+                ss._kernel(field, frame, ss.PHI_TABLE, p.coef, self.slots, p.scale, p.step, p.u0, p.v0, p.nu, p.nv, p.offset,
                            uc, vc, cuu, cuv, cvv, chunk, out, counts, nb.get_num_threads())
             finally:
                 self._pinned.clear()
@@ -414,11 +443,15 @@ _LAZY_LOCK = threading.Lock()
 
 def lazy_pyramid(prior: TerrainPrior, squared: bool) -> LazyPyramid:
     """The prior's lazy pyramid of r (or r²), made once per prior object and kept while it lives; its
-    cells are read from ``prior.density`` (which may be a memmap), and Gaussians finer than the finest
-    level use it in memory as the whole pyramid does."""
+    cells are read from ``prior.density`` (an array, a memmap or a windowed density). Gaussians finer
+    than the finest level read the density in memory as the whole pyramid does, or windows of a
+    windowed density around them (the same numbers)."""
     with _LAZY_LOCK:
         per_prior = _LAZY.setdefault(prior, {})
         if squared not in per_prior:
-            field = np.asarray(prior.density, dtype=np.float64)
-            per_prior[squared] = LazyPyramid(prior.density, squared, field=field * field if squared else field)
+            field = None
+            if isinstance(prior.density, np.ndarray):
+                field = np.asarray(prior.density, dtype=np.float64)
+                field = field * field if squared else field
+            per_prior[squared] = LazyPyramid(prior.density, squared, field=field)
         return per_prior[squared]

@@ -455,9 +455,11 @@ def _phi(tab, x):
 
 
 @nb.njit(cache=True, error_model="numpy", fastmath=FAST)
-def _window(values, tab, u, v, s, wu):
-    """f_s(u, v) exactly: Σ_cells value · ΔΦ_u · ΔΦ_v over the cells within 5 s of the point."""
-    h, w = values.shape
+def _window(values, frame, tab, u, v, s, wu):
+    """f_s(u, v) exactly: Σ_cells value · ΔΦ_u · ΔΦ_v over the cells within 5 s of the point. ``frame``
+    = (r0, c0, H, W): ``values`` holds the (H, W) grid's cells from row r0, column c0 on, at least those
+    read (the whole grid: (0, 0, H, W))."""
+    r0, c0, h, w = frame[0], frame[1], frame[2], frame[3]
     reach = 5.0 * s
     # ceil - 1: a point on a cell edge also weighs the cell that ends there (reach may round to 0).
     i0 = max(int(np.ceil(u - reach)) - 1, 0)
@@ -481,14 +483,15 @@ def _window(values, tab, u, v, s, wu):
         if wv == 0.0:
             continue
         row = 0.0
+        jj = j - r0
         for i in range(i0, i1 + 1):
-            row += values[j, i] * wu[i - i0]
+            row += values[jj, i - c0] * wu[i - i0]
         acc += wv * row
     return acc
 
 
 @nb.njit(cache=True, error_model="numpy", fastmath=FAST)
-def _one(values, tab, coef, slots, scale, step, u0, v0, nu, nv, offset, uc, vc, cuu, cuv, cvv, xs1, ws1, xs2, ws2, wu):
+def _one(values, frame, tab, coef, slots, scale, step, u0, v0, nu, nv, offset, uc, vc, cuu, cuv, cvv, xs1, ws1, xs2, ws2, wu):
     """∫ G r for one Gaussian in pixel units (mean (uc, vc), covariance [[cuu, cuv], [cuv, cvv]] cells²);
     ``slots`` and ``offset``: where each level's blocks are (see :func:`_spline_at`).
 
@@ -508,7 +511,7 @@ def _one(values, tab, coef, slots, scale, step, u0, v0, nu, nv, offset, uc, vc, 
         acc = 0.0
         for i in range(n1):
             a = xs1[i] * s
-            acc += ws1[i] * _window(values, tab, uc + a * e1u, vc + a * e1v, s, wu)
+            acc += ws1[i] * _window(values, frame, tab, uc + a * e1u, vc + a * e1v, s, wu)
         return acc, n1
     k = int(np.floor(np.log(np.sqrt(lam2) / scale[0]) / np.log(RATIO) + 1e-9))
     k = min(max(k, 0), scale.shape[0] - 1)
@@ -530,8 +533,9 @@ def _one(values, tab, coef, slots, scale, step, u0, v0, nu, nv, offset, uc, vc, 
 
 
 @nb.njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def _kernel(values, tab, coef, slots, scale, step, u0, v0, nu, nv, offset, uc, vc, cuu, cuv, cvv, order, out, counts, n_threads):
+def _kernel(values, frame, tab, coef, slots, scale, step, u0, v0, nu, nv, offset, uc, vc, cuu, cuv, cvv, order, out, counts, n_threads):
     """Gaussian ``order[i]`` for i = 0..N-1, in 256-Gaussian chunks; results go to its own index.
+    ``values`` and ``frame``: the cells that Gaussians finer than the pyramid read (see :func:`_window`).
 
     Each chunk first copies its Gaussians out of the inputs (reading them through ``order`` inside
     the loop costs 20 % more: five scattered reads per Gaussian)."""
@@ -562,7 +566,7 @@ def _kernel(values, tab, coef, slots, scale, step, u0, v0, nu, nv, offset, uc, v
         for i in range(lo, hi):
             r = g[i - lo]
             out[order[i]], counts[order[i]] = _one(
-                values, tab, coef, slots, scale, step, u0, v0, nu, nv, offset, r[0], r[1], r[2], r[3], r[4], xs1, ws1, xs2, ws2, wu
+                values, frame, tab, coef, slots, scale, step, u0, v0, nu, nv, offset, r[0], r[1], r[2], r[3], r[4], xs1, ws1, xs2, ws2, wu
             )
 
 
@@ -628,9 +632,14 @@ def integrate_pixels(
     out = np.empty(n)
     counts = np.empty(n, dtype=np.int64)
     slots, offset = pyr.slots(p)
-    args = (pyr.field, PHI_TABLE, p.coef, slots, p.scale, p.step, p.u0, p.v0, p.nu, p.nv, offset)
+    args = (pyr.field, whole_frame(pyr.field), PHI_TABLE, p.coef, slots, p.scale, p.step, p.u0, p.v0, p.nu, p.nv, offset)
     _kernel(*args, uc, vc, cuu, cuv, cvv, np.argsort(keys), out, counts, nb.get_num_threads())
     return out, counts
+
+
+def whole_frame(values: np.ndarray) -> np.ndarray:
+    """The :func:`_window` frame of a field that holds the whole grid."""
+    return np.array([0, 0, values.shape[0], values.shape[1]], np.int64)
 
 
 ORDER_TILE = 32

@@ -25,7 +25,7 @@ import math
 import numba as nb
 import numpy as np
 
-__all__ = ["FEW", "TINY", "bvn_cdf", "few_cell_integrals", "is_few_cells", "is_tiny", "tiny_integrals"]
+__all__ = ["FEW", "READ_SPAN", "TINY", "bvn_cdf", "few_cell_integrals", "is_few_cells", "is_tiny", "tiny_integrals"]
 
 TINY = 0.05
 """Largest σ (cells, along the Gaussian's major axis) integrated in closed form: 8.5 σ < 0.5 cell, so
@@ -36,6 +36,8 @@ FEW = 2.0
 small spans too few cells for concentric terraces to follow a field that jumps from cell to cell (4 %
 off for r² at σ = 1 cell on a rough field), and its ±8.5 σ window is at most 35 × 35 cells."""
 _WINDOW = 8.5  # σ each side: Φ(-8.5) ≈ 1e-17 of the mass lies beyond
+READ_SPAN = _WINDOW
+"""Both kernels read only cells within ``READ_SPAN`` σ (per axis) plus 2 cells of a Gaussian's mean."""
 
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(12)
 _MAX_PANELS = 64  # the last panel ends 2^-63 rad from π/2: what lies beyond is below 1e-19
@@ -98,17 +100,21 @@ def is_tiny(cuu, cuv, cvv):
 
 
 @nb.njit(cache=True, inline="always")
-def _cell(field, i, j):
-    """The field's value at column i, row j; 0 off the grid."""
+def _cell(field, i, j, r0, c0):
+    """The value of the grid's cell at column i, row j from a field holding the cells from row r0,
+    column c0 on; 0 beyond the field (off the grid, when the field holds every cell read)."""
+    i -= c0
+    j -= r0
     if 0 <= i < field.shape[1] and 0 <= j < field.shape[0]:
         return field[j, i]
     return 0.0
 
 
 @nb.njit(cache=True)
-def tiny_integrals(field, uc, vc, cuu, cuv, cvv):
+def tiny_integrals(field, r0, c0, uc, vc, cuu, cuv, cvv):
     """∫ G r for Gaussians that pass :func:`is_tiny`: the mass-weighted values of the 2 × 2 cells
-    around each mean's nearest corner (pixel units in, the field's units out)."""
+    around each mean's nearest corner (pixel units in, the field's units out). ``field`` holds the
+    grid's cells from row ``r0``, column ``c0`` on (0, 0: the whole grid), at least those read."""
     out = np.empty(uc.shape[0])
     for n in range(uc.shape[0]):
         su, sv, rho = _corr(cuu[n], cuv[n], cvv[n])
@@ -120,10 +126,10 @@ def tiny_integrals(field, uc, vc, cuu, cuv, cvv):
         j = int(cv)
         # Each quadrant by its own orthant probability (reflections), so small shares keep their accuracy.
         out[n] = (
-            _cell(field, i - 1, j - 1) * bvn_cdf(x, y, rho)
-            + _cell(field, i, j - 1) * bvn_cdf(-x, y, -rho)
-            + _cell(field, i - 1, j) * bvn_cdf(x, -y, -rho)
-            + _cell(field, i, j) * bvn_cdf(-x, -y, rho)
+            _cell(field, i - 1, j - 1, r0, c0) * bvn_cdf(x, y, rho)
+            + _cell(field, i, j - 1, r0, c0) * bvn_cdf(-x, y, -rho)
+            + _cell(field, i - 1, j, r0, c0) * bvn_cdf(x, -y, -rho)
+            + _cell(field, i, j, r0, c0) * bvn_cdf(-x, -y, rho)
         )
     return out
 
@@ -139,9 +145,10 @@ def is_few_cells(cuu, cuv, cvv):
 
 
 @nb.njit(cache=True)
-def few_cell_integrals(field, uc, vc, cuu, cuv, cvv):
+def few_cell_integrals(field, r0, c0, uc, vc, cuu, cuv, cvv):
     """∫ G r, exactly, for Gaussians of a few cells (:func:`is_few_cells`): Σ over the cells of the ±8.5 σ
-    window of r(cell) times the Gaussian's mass in it, each mass a rectangle of Φ₂ (its four corners)."""
+    window of r(cell) times the Gaussian's mass in it, each mass a rectangle of Φ₂ (its four corners).
+    ``field``, ``r0``, ``c0`` as in :func:`tiny_integrals`."""
     out = np.empty(uc.shape[0])
     for n in range(uc.shape[0]):
         su, sv, rho = _corr(cuu[n], cuv[n], cvv[n])
@@ -158,7 +165,7 @@ def few_cell_integrals(field, uc, vc, cuu, cuv, cvv):
         total = 0.0
         for b in range(j1 - j0 + 1):
             for a in range(i1 - i0 + 1):
-                value = _cell(field, i0 + a, j0 + b)
+                value = _cell(field, i0 + a, j0 + b, r0, c0)
                 if value != 0.0:
                     # A cell's mass is >= 0; the four-corner difference can round to -1e-27 far in a tail.
                     mass = corners[b + 1, a + 1] - corners[b, a + 1] - corners[b + 1, a] + corners[b, a]

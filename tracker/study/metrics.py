@@ -77,7 +77,7 @@ class ScoreGram:
         iu, ju = np.nonzero(np.triu(self.needed))
         m, M, log_g = gaussian_product(means[ju], covs[ju], means[iu], covs[iu])
         p = terrain[iu].astype(int) + terrain[ju].astype(int)
-        log_rmax = np.log(float(np.max(prior.density)))
+        log_rmax = np.log(prior.max_density)
         log_bound = log_g + p * log_rmax - self.log_c[iu] - self.log_c[ju]
         diag = iu == ju
         values = np.zeros(iu.size)

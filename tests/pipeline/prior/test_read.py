@@ -77,15 +77,16 @@ def test_each_build_has_its_own_id(tmp_path: Path) -> None:
         assert sa.tags()[BUILD_TAG] != sb.tags()[BUILD_TAG]
 
 
+@pytest.mark.parametrize("windowed", [False, True])
 @pytest.mark.parametrize("swapped", ["prior.tif", "prior.sat.npy", "prior.sat2.npy"])
-def test_mixed_set_is_refused(tmp_path: Path, swapped: str) -> None:
+def test_mixed_set_is_refused(tmp_path: Path, swapped: str, windowed: bool) -> None:
     """The reported case (a new .sat.npy beside the old .tif and .sat2.npy) and its siblings: any one
     file of another build beside the other two."""
     old = _prior(0).write(tmp_path / "old" / "prior.tif")
     new = _prior(1).write(tmp_path / "new" / "prior.tif")
     shutil.copy(new.parent / swapped, old.parent / swapped)
     with pytest.raises(PriorError, match=r"prior\.sat2?\.npy: not the table of the build prior\.tif records.*mixed from two builds") as err:
-        TerrainPrior.read(old)
+        TerrainPrior.read(old, windowed=windowed)
     assert f"rebuild it with `terrain-prior build /data/region.toml --out {old}`" in str(err.value)
 
 
@@ -136,10 +137,11 @@ def test_bad_tags(prior_path: Path, tag: str, value: str, match: str) -> None:
         (lambda d: np.where(np.arange(d.size).reshape(d.shape) == 20, np.nan, d), "finite and >= 0; 1 bad cells, first at row 2, col 2"),
     ],
 )
-def test_bad_density(prior_path: Path, change, match: str) -> None:
+@pytest.mark.parametrize("windowed", [False, True])
+def test_bad_density(prior_path: Path, change, match: str, windowed: bool) -> None:
     _rewrite_density(prior_path, change)
     with pytest.raises(PriorError, match=match) as err:
-        TerrainPrior.read(prior_path)
+        TerrainPrior.read(prior_path, windowed=windowed)
     assert f"{prior_path}: density" in str(err.value) and "build /data/region.toml --out" in str(err.value)
 
 
@@ -225,7 +227,8 @@ def test_non_finite_table_entry(prior_path: Path, which: int, value: float) -> N
         TerrainPrior.read(prior_path)
 
 
-def test_tables_must_total_up_to_the_density(prior_path: Path) -> None:
+@pytest.mark.parametrize("windowed", [False, True])
+def test_tables_must_total_up_to_the_density(prior_path: Path, windowed: bool) -> None:
     """Tables whose checksum the GeoTIFF records, but which are not this density's tables."""
     sat = sat_paths(prior_path)[0]
     t = np.load(sat)
@@ -233,19 +236,20 @@ def test_tables_must_total_up_to_the_density(prior_path: Path) -> None:
     np.save(sat, t)
     _rehash(prior_path)
     with pytest.raises(PriorError, match=r"prior\.sat\.npy: table totals differ from the density's by 0\.0001"):
-        TerrainPrior.read(prior_path)
+        TerrainPrior.read(prior_path, windowed=windowed)
     np.save(sat, np.pad(t[1:, 1:], ((1, 0), (1, 0)))[:, ::-1].copy())  # not zero-padded
     _rehash(prior_path)
     with pytest.raises(PriorError, match="first row and column of a padded summed-area table must be zero"):
-        TerrainPrior.read(prior_path)
+        TerrainPrior.read(prior_path, windowed=windowed)
 
 
-def test_sat2_must_total_up_to_the_squared_density(prior_path: Path) -> None:
+@pytest.mark.parametrize("windowed", [False, True])
+def test_sat2_must_total_up_to_the_squared_density(prior_path: Path, windowed: bool) -> None:
     sat, sat2 = sat_paths(prior_path)
     shutil.copy(sat, sat2)  # r's table where r^2's belongs
     _rehash(prior_path)
     with pytest.raises(PriorError, match=r"prior\.sat2\.npy: table totals differ"):
-        TerrainPrior.read(prior_path)
+        TerrainPrior.read(prior_path, windowed=windowed)
 
 
 def _bad_priors(tmp_path: Path) -> dict[str, Path]:
