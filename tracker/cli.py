@@ -6,6 +6,7 @@ A thin argparse layer: one function per subcommand, each parses nothing itself a
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -43,7 +44,13 @@ def cmd_run(args: argparse.Namespace) -> None:
     s_model = PoissonS(args.poisson_mu) if args.poisson_mu is not None else ExpS(args.tau)
     motion = ConstantVelocity(args.q, args.velocity_std) if args.motion == "cv" else Static()
     outputs = [Output("--out", args.out), Output("--assignments", args.assignments) if args.assignments else None]
-    with command_outputs(outputs, prior_inputs(args.prior) | file_inputs(reports=args.reports)) as out:
+    with contextlib.ExitStack() as stack:
+        out = stack.enter_context(command_outputs(outputs, prior_inputs(args.prior) | file_inputs(reports=args.reports)))
+        if args.scheduler:
+            from common.dask import get_client  # dask loads only for cluster runs
+            from tracker.integrate.lazy import tile_client
+
+            stack.enter_context(tile_client(stack.enter_context(get_client(args.scheduler))))
         result = track_files(
             args.prior, args.reports, out.path("--out"), args.variant, s_model, motion, layer=args.layer,
             ellipse_prob=args.ellipse_prob, assignments_csv=out.path("--assignments") if args.assignments else None,
@@ -85,6 +92,8 @@ def add_run_parser(sub, quiet: argparse.ArgumentParser) -> None:
     add_integrator_argument(p)
     p.add_argument("--ellipse-prob", type=float, default=0.95, help="probability contour drawn as each target's ellipse")
     p.add_argument("--assignments", type=Path, help="also write report -> hypothesis index as CSV (batch: and its membership probability)")
+    p.add_argument("--scheduler", metavar="ADDRESS", help="Dask scheduler whose workers build the prior's pyramid tiles, for "
+                   "priors above 25 M cells (read window by window; the file must be on a path the workers share)")
     p.add_argument("--out", type=Path, required=True, help="GeoPackage to write (layers targets, ellipses)")
     p.set_defaults(func=cmd_run)
 

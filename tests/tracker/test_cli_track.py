@@ -118,3 +118,35 @@ def test_track_files_commits_tracks_and_assignments_together(files, tmp_path):
     with pytest.raises(OSError):
         track_files(d / "prior.tif", d / "reports.csv", tmp_path / "t.gpkg", assignments_csv=d / "reports.csv" / "a.csv")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_run_on_a_windowed_prior_with_tiles_built_on_a_cluster(files, monkeypatch, capsys):
+    """A prior above the size limits (lowered here): `run` reads it window by window, and with
+    ``--scheduler`` the pyramid's cell-level tiles are built on the cluster; decisions are the library's."""
+    from distributed import Client
+
+    from pipeline.prior import terrain
+    from tracker.integrate import scalespace
+    from tracker.io.reports import read_reports
+
+    d, prior, df = files
+    cells = prior.grid.height * prior.grid.width
+    monkeypatch.setattr(scalespace, "MAX_CELLS", cells - 1)
+    monkeypatch.setattr(terrain, "WINDOWED_CELLS", cells - 1)
+    want = associate(TerrainPrior.read(d / "prior.tif", windowed=False), read_reports(d / "reports.csv")[0], "TT", tau=-1.0)
+    with Client(processes=False, n_workers=1, threads_per_worker=2, dashboard_address=None) as client:
+        code = main(["run", "--prior", str(d / "prior.tif"), "--reports", str(d / "reports.csv"), "--tau", "-1.0",
+                     "--scheduler", client.scheduler.address, "--out", str(d / "win.gpkg"), "--assignments", str(d / "win.csv")])
+        sent = client.run_on_scheduler(lambda dask_scheduler: dask_scheduler.transition_counter)
+    assert code == 0 and sent > 0
+    np.testing.assert_array_equal(pd.read_csv(d / "win.csv")["hypothesis"].to_numpy(), want.assignments)
+    assert f"-> {want.n_detected} targets" in capsys.readouterr().out
+
+
+def test_run_with_an_unreachable_scheduler_names_it(files, capsys):
+    d, _, _ = files
+    code = main(["run", "--prior", str(d / "prior.tif"), "--reports", str(d / "reports.csv"),
+                 "--scheduler", "tcp://127.0.0.1:9", "--out", str(d / "never.gpkg")])
+    err = capsys.readouterr().err
+    assert code == 1 and "error: --scheduler tcp://127.0.0.1:9: cannot connect" in err and "Traceback" not in err
+    assert not (d / "never.gpkg").exists()

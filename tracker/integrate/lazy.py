@@ -30,7 +30,9 @@ from __future__ import annotations
 import threading
 import weakref
 from collections import OrderedDict
-from typing import Protocol
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import TYPE_CHECKING, Protocol
 
 import numba as nb
 import numpy as np
@@ -38,7 +40,10 @@ import numpy as np
 from pipeline.prior import TerrainPrior
 from tracker.integrate import scalespace as ss
 
-__all__ = ["BLOCKS", "CACHE_BYTES", "SIDE", "CellSource", "LazyPyramid", "lazy_pyramid"]
+if TYPE_CHECKING:
+    from distributed import Client
+
+__all__ = ["BLOCKS", "CACHE_BYTES", "SIDE", "CellSource", "LazyPyramid", "cell_tile", "lazy_pyramid", "tile_client"]
 
 BLOCKS = 8
 """Kernel blocks (:data:`~tracker.integrate.scalespace.TILE` nodes) per tile side at levels 0-3; levels
@@ -81,11 +86,13 @@ class LazyPyramid:
     above (:meth:`level_blocks`). ``tiles_built`` and ``cells_read`` count the work so far. ``field``,
     the (H, W) float64 values (r or r²) in memory, serves Gaussians narrower than the finest level
     (smoothed on the fly from the cells, as the whole pyramid does); without it they are smoothed
-    from windows of ``source`` around them, with the same numbers.
+    from windows of ``source`` around them, with the same numbers. With a ``client``
+    (``dask.distributed``), the cell-level tiles a batch needs are built on its workers (``source``
+    must then be picklable and readable there: a windowed density of a file on a shared path is).
     """
 
     def __init__(self, source: CellSource, squared: bool = False, cache_bytes: int = CACHE_BYTES,
-                 field: np.ndarray | None = None, blocks: int = BLOCKS) -> None:
+                 field: np.ndarray | None = None, blocks: int = BLOCKS, client: Client | None = None) -> None:
         if len(source.shape) != 2:
             raise ValueError(f"LazyPyramid: the source must be 2-D, got shape {source.shape}")
         self.source = source
@@ -104,6 +111,8 @@ class LazyPyramid:
         self.slots = np.full(0, MISSING, np.int32)
         self.tiles_built = 0
         self.cells_read = 0
+        self.client = client
+        self._scattered = None  # (client, the source scattered to its workers)
         self._lock = threading.RLock()
 
     # --- levels and tiles -------------------------------------------------------------------
@@ -123,9 +132,9 @@ class LazyPyramid:
 
     def _cells(self, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
         """The float64 values (r or r²) of cells [r0, r1) x [c0, c1)."""
-        values = np.ascontiguousarray(self.source[r0:r1, c0:c1], dtype=np.float64)
+        values = read_cells(self.source, self.squared, r0, r1, c0, c1)
         self.cells_read += values.size
-        return values * values if self.squared else values
+        return values
 
     def level_blocks(self, k: int) -> int:
         """Kernel blocks per tile side at level k: ``blocks`` halved every 4 levels (one octave), at least
@@ -188,17 +197,11 @@ class LazyPyramid:
             nb.set_num_threads(threads)
 
     def _values(self, k: int, j0: int, j1: int, i0: int, i1: int) -> np.ndarray:
-        """f_{s_k} (float64) at level k's nodes [j0, j1) x [i0, i1): cell sums, or the trapezoid rule on
-        the level below, with the whole lattice's band starts and weights."""
+        """f_{s_k} (float64) at the nodes [j0, j1) x [i0, i1) of a level k >= CELL_LEVELS: the trapezoid
+        rule on the level below, with the whole lattice's band starts and weights."""
         s, h, origin = self._geometry[k][:3]
         u = origin + h * np.arange(i0, i1)
         v = origin + h * np.arange(j0, j1)
-        if k < ss.CELL_LEVELS:
-            su, wu = ss._box_weights(u, self.shape[1], s)
-            sv, wv = ss._box_weights(v, self.shape[0], s)
-            c0, r0 = int(su.min()), int(sv.min())
-            cells = self._cells(r0, int(sv.max()) + wv.shape[1], c0, int(su.max()) + wu.shape[1])
-            return ss._separable(cells, su - c0, wu, sv - r0, wv)
         ps, ph, po, pnu, pnv = self._geometry[k - 1][:5]
         d = np.sqrt(s * s - ps * ps)
         su, wu = ss._gauss_weights(u, po, pnu, d, ph)
@@ -212,21 +215,19 @@ class LazyPyramid:
 
     def _build(self, k: int, tv: int, tu: int) -> None:
         """Coefficients of tile (tv, tu) of level k, into free blocks of the pool."""
-        s, h, origin, nu, nv, nbu, toff = self._geometry[k]
+        if k < ss.CELL_LEVELS:
+            padded, cells = cell_tile(self.source, self.squared, self.shape, k, tv, tu, self._side(k))
+            self.cells_read += cells
+        else:
+            nu, nv = self._geometry[k][3:5]
+            padded = _padded_coefficients(lambda *window: self._values(k, *window), nu, nv, self._side(k), tv, tu)
+        self._insert(k, tv, tu, padded)
+
+    def _insert(self, k: int, tv: int, tu: int, padded: np.ndarray) -> None:
+        """Tile (tv, tu) of level k (its coefficients with their aprons, :func:`_padded_coefficients`) into
+        free blocks of the pool."""
+        nu, nv, nbu, toff = self._geometry[k][3:]
         blocks = self.level_blocks(k)
-        side = blocks * _T
-        av, au = tv * side, tu * side
-        # The tile's coefficient nodes with their aprons (av-1 .. av+side+1), within the lattice.
-        r_lo, r_hi = max(av - 1, 0), min(av + side + 2, nv)
-        c_lo, c_hi = max(au - 1, 0), min(au + side + 2, nu)
-        fsv, fwv = ss._fir_weights(r_lo, r_hi, nv)
-        fsu, fwu = ss._fir_weights(c_lo, c_hi, nu)
-        w_v0, w_u0 = int(fsv[0]), int(fsu[0])
-        values = self._values(k, w_v0, int(fsv[-1]) + fwv.shape[1], w_u0, int(fsu[-1]) + fwu.shape[1])
-        coef = ss._separable(values, fsu - w_u0, fwu, fsv - w_v0, fwv).astype(np.float32)
-        # The blocks with their aprons, zeros beyond the lattice (as _tile).
-        padded = np.zeros((side + 3, side + 3), np.float32)
-        padded[r_lo - av + 1 : r_hi - av + 1, c_lo - au + 1 : c_hi - au + 1] = coef
         tiles = np.lib.stride_tricks.sliding_window_view(padded, (ss.TILE + 3, ss.TILE + 3))[:: ss.TILE, :: ss.TILE]
         nbv = -(-nv // ss.TILE)
         gbv = tv * blocks + np.arange(blocks)
@@ -240,6 +241,22 @@ class LazyPyramid:
         self.slots[table] = slots
         self._tiles[(k, tv, tu)] = table
         self.tiles_built += 1
+
+    def _build_on_workers(self, keys: list[tuple[int, int, int]]) -> None:
+        """With a :attr:`client`, the missing cell-level tiles among ``keys`` built on its workers
+        (:func:`cell_tile`), then put into the pool here; the tiles above the cell levels read the pool,
+        so they are built in this process. Without a client: nothing (:meth:`tile` builds each)."""
+        todo = [key for key in keys if key[0] < ss.CELL_LEVELS and key not in self._tiles]
+        if self.client is None or len(todo) < 2:
+            return
+        if self._scattered is None or self._scattered[0] is not self.client:
+            self._scattered = (self.client, self.client.scatter(self.source, broadcast=True))
+        source = self._scattered[1]
+        futures = self.client.map(cell_tile, [source] * len(todo), [self.squared] * len(todo), [self.shape] * len(todo),
+                                  *zip(*todo, strict=True), [self._side(k) for k, _, _ in todo], pure=False)
+        for key, (padded, cells) in zip(todo, self.client.gather(futures), strict=True):
+            self.cells_read += cells
+            self._insert(*key, padded)
 
     def _make_room(self, n: int) -> None:
         """Free ``n`` slots, evicting the least recently used tiles that are not pinned."""
@@ -392,6 +409,7 @@ class LazyPyramid:
                 continue
             pins = [(int(t >> 40), int((t >> 20) & 0xFFFFF), int(t & 0xFFFFF)) for t in need]
             try:
+                self._build_on_workers(pins)
                 for key in pins:
                     self.tile(*key)
                     if key not in self._pinned:
@@ -404,6 +422,55 @@ class LazyPyramid:
             finally:
                 self._pinned.clear()
                 self._pinned_blocks = 0
+
+
+def read_cells(source: CellSource, squared: bool, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+    """The float64 values (r, or r² when ``squared``) of cells [r0, r1) x [c0, c1) of ``source``."""
+    values = np.ascontiguousarray(source[r0:r1, c0:c1], dtype=np.float64)
+    return values * values if squared else values
+
+
+def _padded_coefficients(values, nu: int, nv: int, side: int, tv: int, tu: int) -> np.ndarray:
+    """Tile (tv, tu) (``side`` nodes a side) of a level with an (nv, nu) lattice: its cubic B-spline
+    coefficients with the one-before, two-after apron, zeros beyond the lattice (as ``scalespace._tile``),
+    float32 (side + 3)². ``values(j0, j1, i0, i1)`` gives the level's node values on a window."""
+    av, au = tv * side, tu * side
+    # The tile's coefficient nodes with their aprons (av-1 .. av+side+1), within the lattice.
+    r_lo, r_hi = max(av - 1, 0), min(av + side + 2, nv)
+    c_lo, c_hi = max(au - 1, 0), min(au + side + 2, nu)
+    fsv, fwv = ss._fir_weights(r_lo, r_hi, nv)
+    fsu, fwu = ss._fir_weights(c_lo, c_hi, nu)
+    w_v0, w_u0 = int(fsv[0]), int(fsu[0])
+    window = values(w_v0, int(fsv[-1]) + fwv.shape[1], w_u0, int(fsu[-1]) + fwu.shape[1])
+    coef = ss._separable(window, fsu - w_u0, fwu, fsv - w_v0, fwv).astype(np.float32)
+    padded = np.zeros((side + 3, side + 3), np.float32)
+    padded[r_lo - av + 1 : r_hi - av + 1, c_lo - au + 1 : c_hi - au + 1] = coef
+    return padded
+
+
+def cell_tile(source: CellSource, squared: bool, shape: tuple[int, int], k: int, tv: int, tu: int, side: int
+              ) -> tuple[np.ndarray, int]:
+    """Tile (tv, tu) of a cell level k < CELL_LEVELS of the lazy pyramid of ``source`` (r, or r² when
+    ``squared``) on an (H, W) grid, from the source's cells alone: (:func:`_padded_coefficients`, cells
+    read). A pure function of its arguments, so a Dask worker can build it (a windowed density is
+    picklable: the worker reopens the file)."""
+    s, h, origin, nu, nv = ss.lattice(k, shape)
+    read = [0]
+
+    def values(j0: int, j1: int, i0: int, i1: int) -> np.ndarray:
+        su, wu = ss._box_weights(origin + h * np.arange(i0, i1), shape[1], s)
+        sv, wv = ss._box_weights(origin + h * np.arange(j0, j1), shape[0], s)
+        c0, r0 = int(su.min()), int(sv.min())
+        cells = read_cells(source, squared, r0, int(sv.max()) + wv.shape[1], c0, int(su.max()) + wu.shape[1])
+        read[0] += cells.size
+        return ss._separable(cells, su - c0, wu, sv - r0, wv)
+
+    threads = nb.get_num_threads()
+    nb.set_num_threads(1)  # a tile's kernels are short: one thread each (a worker's threads share the cores)
+    try:
+        return _padded_coefficients(values, nu, nv, side, tv, tu), read[0]
+    finally:
+        nb.set_num_threads(threads)
 
 
 def _tile_keys(k: int, lo_u, hi_u, lo_v, hi_v) -> np.ndarray:
@@ -441,6 +508,21 @@ _LAZY: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 _LAZY_LOCK = threading.Lock()
 
 
+_CLIENT: list[Client | None] = [None]
+
+
+@contextmanager
+def tile_client(client: Client | None) -> Iterator[None]:
+    """Within the block, the lazy pyramids of :func:`lazy_pyramid` build their cell-level tiles on
+    ``client``'s workers (None: in this process, the default)."""
+    before = _CLIENT[0]
+    _CLIENT[0] = client
+    try:
+        yield
+    finally:
+        _CLIENT[0] = before
+
+
 def lazy_pyramid(prior: TerrainPrior, squared: bool) -> LazyPyramid:
     """The prior's lazy pyramid of r (or r²), made once per prior object and kept while it lives; its
     cells are read from ``prior.density`` (an array, a memmap or a windowed density). Gaussians finer
@@ -454,4 +536,5 @@ def lazy_pyramid(prior: TerrainPrior, squared: bool) -> LazyPyramid:
                 field = np.asarray(prior.density, dtype=np.float64)
                 field = field * field if squared else field
             per_prior[squared] = LazyPyramid(prior.density, squared, field=field)
+        per_prior[squared].client = _CLIENT[0]
         return per_prior[squared]

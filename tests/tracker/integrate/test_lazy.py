@@ -196,3 +196,30 @@ def test_a_gaussian_on_the_finest_scale_is_planned_both_ways() -> None:
     np.testing.assert_array_equal(counts, want_counts)
     np.testing.assert_array_equal(got, want)
     np.testing.assert_array_equal(lazy.LazyPyramid(field).integrate_pixels(*px)[0], want)
+
+
+def test_cell_tiles_built_on_dask_workers_are_the_same_tiles() -> None:
+    """A local Dask cluster builds the cell-level tiles (a pickled source per worker): the same
+    integrals, tiles and cells read as building them in this process."""
+    from common.dask import get_client
+
+    source = Mosaic(rough_field(seed=4, shape=(64, 80)), (5, 4))
+    px = pixel_batch(source.shape, 2000, seed=8, smallest=0.5, largest=20.0)
+    serial = lazy.LazyPyramid(source, blocks=1, cache_bytes=1 << 24)
+    want, want_counts = serial.integrate_pixels(*px)
+    with get_client(threads=2) as client:
+        spread = lazy.LazyPyramid(source, blocks=1, cache_bytes=1 << 24, client=client)
+        got, counts = spread.integrate_pixels(*px)
+        assert client.run_on_scheduler(lambda dask_scheduler: dask_scheduler.transition_counter) > 0  # work was sent
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(counts, want_counts)
+    assert spread.tiles_built == serial.tiles_built and spread.cells_read == serial.cells_read
+    assert {k for k, _, _ in spread._tiles} & set(range(scalespace.CELL_LEVELS))
+
+
+def test_tile_client_reaches_the_priors_lazy_pyramids(monkeypatch) -> None:
+    monkeypatch.setattr(scalespace, "MAX_CELLS", ROUGH.grid.height * ROUGH.grid.width - 1)
+    sentinel = object()
+    with lazy.tile_client(sentinel):
+        assert lazy.lazy_pyramid(ROUGH, False).client is sentinel
+    assert lazy.lazy_pyramid(ROUGH, False).client is None
