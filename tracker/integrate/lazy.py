@@ -60,9 +60,11 @@ _BLOCK = ss.BLOCK
 BORDER = 1e-9
 """Relative margin around S0 within which a Gaussian's smaller σ may fall on either side of the
 kernel's fine/pyramid test (its rounding): it is planned both ways."""
-FINE_BLOCK = 256
+FINE_BLOCK = 1024
 """Cells per side of the blocks of means whose Gaussians finer than level 0 read one window of the
-source together (without an in-memory field)."""
+source together (without an in-memory field): the window spans the block's Gaussians, not the block."""
+SERIAL_BELOW = 1024
+"""Batches of fewer integrals run on one thread (as the tracker's small integrator calls do)."""
 MISSING = 0
 """The pool's slot that the block tables point at for a block not built (or evicted): all NaN, so a
 look-up there gives NaN (the kernel needs no test; the caller builds the tiles and asks again)."""
@@ -324,22 +326,46 @@ class LazyPyramid:
             self._grow(float(smin.max(initial=0.0)))
             order = np.argsort(keys)
             # The kernel's own test (λ₂ < S0², in its rounding) may go either way within 1e-9 of S0:
-            # such Gaussians count as fine here and get level-0 tiles planned (_tiles_of).
-            fine = smin[order] < ss.S0 * (1.0 + BORDER)
+            # such Gaussians get level-0 tiles planned (_tiles_of) and, without a field, come back
+            # with look-ups -1 when the kernel found them finer (no cells given: NO_CELLS).
             if self.field is not None:
-                batches = [(self.field, ss.whole_frame(self.field), order)]
-            else:  # the coarse ones read no cells; the fine ones read windows of the source
-                batches = [(np.zeros((1, 1)), np.array([0, 0, h, w], np.int64), order[~fine]),
-                           *self._fine_windows(order[fine], uc, vc, cuu, cuv, cvv)]
-            for values, frame, todo in batches:
-                for widen in (0, 1, 2):
-                    if not todo.size:
-                        break
-                    self._run(values, frame, todo, uc, vc, cuu, cuv, cvv, widen, out, counts)
-                    todo = todo[np.isnan(out[todo])]
-                if todo.size:
-                    raise RuntimeError(f"LazyPyramid: {todo.size} integrals still miss tiles after widening the plan")
+                self._tiled(self.field, ss.whole_frame(self.field), order, uc, vc, cuu, cuv, cvv, out, counts)
+            else:
+                surely = smin[order] < ss.S0 * (1.0 - BORDER)
+                coarse = order[~surely]
+                self._tiled(np.zeros((1, 1)), ss.NO_CELLS, coarse, uc, vc, cuu, cuv, cvv, out, counts)
+                self._fine(np.concatenate([order[surely], coarse[counts[coarse] == -1]]), uc, vc, cuu, cuv, cvv, out, counts)
         return out, counts
+
+    def _tiled(self, values, frame, todo, uc, vc, cuu, cuv, cvv, out, counts) -> None:
+        """Integrals ``todo`` (kernel order) with their tiles built, widening the plan for any whose
+        look-ups found a block missing (NaN); ``values``/``frame``: the cells for Gaussians finer than
+        level 0 (:func:`~tracker.integrate.scalespace._window`)."""
+        threads = nb.get_num_threads()
+        nb.set_num_threads(1 if todo.size < SERIAL_BELOW else threads)  # a parallel launch costs more than small batches
+        try:
+            for widen in (0, 1, 2):
+                if not todo.size:
+                    break
+                self._run(values, frame, todo, uc, vc, cuu, cuv, cvv, widen, out, counts)
+                todo = todo[np.isnan(out[todo]) & (counts[todo] >= 0)]
+        finally:
+            nb.set_num_threads(threads)
+        if todo.size:
+            raise RuntimeError(f"LazyPyramid: {todo.size} integrals still miss tiles after widening the plan")
+
+    def _fine(self, idx: np.ndarray, uc, vc, cuu, cuv, cvv, out, counts) -> None:
+        """Integrals ``idx``, which the kernel takes as finer than level 0 (they read cells, no tiles),
+        smoothed from windows of the source (:meth:`_fine_windows`)."""
+        p = self.packed()
+        threads = nb.get_num_threads()
+        try:
+            for values, frame, group in self._fine_windows(idx, uc, vc, cuu, cuv, cvv):
+                nb.set_num_threads(1 if group.size < SERIAL_BELOW else threads)
+                ss._kernel(values, frame, ss.PHI_TABLE, p.coef, self.slots, p.scale, p.step, p.u0, p.v0, p.nu, p.nv, p.offset,
+                           uc, vc, cuu, cuv, cvv, group, out, counts, nb.get_num_threads())
+        finally:
+            nb.set_num_threads(threads)
 
     def _fine_windows(self, idx: np.ndarray, uc, vc, cuu, cuv, cvv):
         """(values, frame, Gaussians) per block of :data:`FINE_BLOCK` cells of the means of the Gaussians

@@ -205,7 +205,7 @@ def _gauss_weights(nodes: np.ndarray, origin: float, n_src: int, d: float, h: fl
     return start, h * np.exp(-0.5 * x * x) / (np.sqrt(2 * np.pi) * d)
 
 
-@nb.njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
+@nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy", fastmath=FAST)
 def _separable(values, su, wu, sv, wv):
     """out[m, n] = Σ_b wv[m, b] Σ_c wu[n, c] values[sv[m] + b, su[n] + c]: rows first, then columns."""
     h = values.shape[0]
@@ -505,6 +505,8 @@ def _one(values, frame, tab, coef, slots, scale, step, u0, v0, nu, nv, offset, u
     e1u = np.cos(th)
     e1v = np.sin(th)
     if lam2 < scale[0] * scale[0]:
+        if frame[2] == 0:  # NO_CELLS: the caller smooths it from the cells (lazy.LazyPyramid._fine)
+            return np.nan, -1
         # Finer than the pyramid: smooth at s = the smaller σ exactly, average along the major axis.
         s = np.sqrt(lam2)
         n1 = _rule(np.sqrt(lam1 - lam2) / s, xs1, ws1)
@@ -635,6 +637,10 @@ def integrate_pixels(
     args = (pyr.field, whole_frame(pyr.field), PHI_TABLE, p.coef, slots, p.scale, p.step, p.u0, p.v0, p.nu, p.nv, offset)
     _kernel(*args, uc, vc, cuu, cuv, cvv, np.argsort(keys), out, counts, nb.get_num_threads())
     return out, counts
+
+
+NO_CELLS = np.zeros(4, np.int64)
+"""The frame of a kernel call given no cells: Gaussians finer than the pyramid return (NaN, -1)."""
 
 
 def whole_frame(values: np.ndarray) -> np.ndarray:
