@@ -76,6 +76,7 @@ from tracker.association.walk import (
     fresh_pairs,
     grid_gate,
     grid_place,
+    half_log_det,
     link_pairs,
     pair_geometry,
     walk,
@@ -191,7 +192,8 @@ class _HypothesisGrid:
         cell = max(math.sqrt(2.0 * self.gamma * lam_v), math.sqrt((xmax - xmin) * (ymax - ymin) / MAX_GRID_CELLS), 1e-3)
         nx, ny = math.ceil((xmax - xmin) / cell) or 1, math.ceil((ymax - ymin) / cell) or 1
         geo = np.array([xmin, ymin, cell, float(nx), float(ny), 0.0, self.WIDE * cell * cell / (2.0 * self.gamma)])
-        self.arrays = (geo, np.full(nx * ny + 1, -1, np.int64), *(np.full(capacity, -1, np.int64) for _ in range(3)))
+        self.arrays = (geo, np.full(nx * ny + 1, -1, np.int64), *(np.full(capacity, -1, np.int64) for _ in range(3)),
+                       np.zeros(nx * ny + 1))
 
     def reserve(self, V: np.ndarray, capacity: int) -> None:
         """Room for ``capacity`` hypotheses (the first call sizes the cells from the block's covariances)."""
@@ -199,8 +201,8 @@ class _HypothesisGrid:
             self._start(V, capacity)
         old = self.arrays[2].shape[0]
         if capacity > old:
-            grown = tuple(np.concatenate([a, np.full(capacity - old, -1, np.int64)]) for a in self.arrays[2:])
-            self.arrays = self.arrays[:2] + grown
+            grown = tuple(np.concatenate([a, np.full(capacity - old, -1, np.int64)]) for a in self.arrays[2:5])
+            self.arrays = self.arrays[:2] + grown + self.arrays[5:]
 
 
 class _PairPool:
@@ -463,7 +465,7 @@ class Tracker:
         low, is_low, floor = self._low_c(m)
         hyp = (H._means, H._covs, H._log_c, H._counts, H._times, dirty, np.zeros(m, dtype=np.int64), low, is_low)
         assign = np.full(m, -1, dtype=np.int64)
-        blk = (z, V, t, log_unseen, 0.5 * np.linalg.slogdet(V)[1], np.zeros(m, dtype=np.bool_), assign,
+        blk = (z, V, t, log_unseen, half_log_det(V), np.zeros(m, dtype=np.bool_), assign,
                *build_report_grid(z, V, self.gamma), np.zeros(m, dtype=np.int64))
         istate = np.array([H.n, 0, self.n_reports_, 0, min(H.n, LOW_C)], dtype=np.int64)
         fstate = np.array([floor, 0.0, self._low_min(low, istate[4])])
@@ -511,7 +513,7 @@ class Tracker:
                np.zeros(m, dtype=np.int64), low, is_low)
         assign = np.full(m, -1, dtype=np.int64)
         none = np.zeros(0, np.int64)  # the block's report grid: not used here
-        blk = (z, V, t, log_unseen, 0.5 * np.linalg.slogdet(V)[1], np.zeros(m, dtype=np.bool_), assign,
+        blk = (z, V, t, log_unseen, half_log_det(V), np.zeros(m, dtype=np.bool_), assign,
                none, none, np.zeros(6), none)
         istate = np.array([H.n, 0, self.n_reports_, 0, min(H.n, LOW_C)], dtype=np.int64)
         fstate = np.array([floor, 0.0, self._low_min(low, istate[4])])

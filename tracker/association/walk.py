@@ -71,6 +71,29 @@ def _lam_max(c00, c01, c11):
 
 
 @njit(cache=True, inline="always")
+def _innovation(a0, a1, A00, A01, A10, A11, z, V, k):
+    """ln G(z_k; a, A + V_k) of a position mean a and covariance A, with the entries (i00, i01, i11) of
+    (A + V_k)⁻¹ and the residual (r0, r1) = z_k - a that the Kalman update needs. The one formula of
+    the score: :func:`_pair_geom` and :func:`_static_log_g` give bit-identical ln G."""
+    s00 = A00 + V[k, 0, 0]
+    s01 = 0.5 * (A01 + A10) + V[k, 0, 1]
+    s11 = A11 + V[k, 1, 1]
+    det = s00 * s11 - s01 * s01
+    i00, i01, i11 = s11 / det, -s01 / det, s00 / det
+    r0 = z[k, 0] - a0
+    r1 = z[k, 1] - a1
+    maha = r0 * (i00 * r0 + i01 * r1) + r1 * (i01 * r0 + i11 * r1)
+    return -0.5 * (maha + math.log(det)) - _LOG_2PI, i00, i01, i11, r0, r1
+
+
+@njit(cache=True, inline="always")
+def _static_log_g(h, k, z, V, Hm, Hc):
+    """ln G(z_k; a_h, A_h + V_k) of static hypothesis h: the score of :func:`_pair_geom` without the
+    Gaussian product (needed only for the chosen hypothesis)."""
+    return _innovation(Hm[h, 0], Hm[h, 1], Hc[h, 0, 0], Hc[h, 0, 1], Hc[h, 1, 0], Hc[h, 1, 1], z, V, k)[0]
+
+
+@njit(cache=True, inline="always")
 def _pair_geom(h, k, blk, hyp, cfg, out_m, out_c, out_pm, out_pc):
     """Kalman step of hypothesis h (current state) to report k: prediction to t_k (constant velocity),
     then the position update. Writes the posterior state/covariance into out_m (D,), out_c (D, D) and
@@ -92,13 +115,7 @@ def _pair_geom(h, k, blk, hyp, cfg, out_m, out_c, out_pm, out_pc):
     else:
         a = Hm[h].copy()
         A = Hc[h].copy()
-    s00 = A[0, 0] + V[k, 0, 0]
-    s01 = 0.5 * (A[0, 1] + A[1, 0]) + V[k, 0, 1]
-    s11 = A[1, 1] + V[k, 1, 1]
-    det = s00 * s11 - s01 * s01
-    i00, i01, i11 = s11 / det, -s01 / det, s00 / det
-    r0 = z[k, 0] - a[0]
-    r1 = z[k, 1] - a[1]
+    log_g, i00, i01, i11, r0, r1 = _innovation(a[0], a[1], A[0, 0], A[0, 1], A[1, 0], A[1, 1], z, V, k)
     for i in range(2):
         out_pm[i] = a[i]
         for c in range(2):
@@ -115,8 +132,7 @@ def _pair_geom(h, k, blk, hyp, cfg, out_m, out_c, out_pm, out_pc):
             v = 0.5 * (out_c[i, c] + out_c[c, i])
             out_c[i, c] = v
             out_c[c, i] = v
-    maha = r0 * (i00 * r0 + i01 * r1) + r1 * (i01 * r0 + i11 * r1)
-    return -0.5 * (maha + math.log(det)) - _LOG_2PI
+    return log_g
 
 
 @njit(cache=True)
@@ -133,6 +149,17 @@ def pair_geometry(rep, h, blk, hyp, cfg):
     for i in range(n):
         log_g[i] = _pair_geom(h[i], rep[i], blk, hyp, cfg, post_m[i], post_c[i], pred_m[i], pred_c[i])
     return log_g, post_m, post_c, pred_m, pred_c
+
+
+@njit(cache=True)
+def half_log_det(V):
+    """½ ln det V_k of 2x2 covariances V (m, 2, 2) (m², so the result is in ln m), from the determinant's
+    formula: it only enters the gate bound of :func:`_choose`, where numpy's batched ``slogdet`` cost
+    ~0.1 µs per report."""
+    out = np.empty(V.shape[0])
+    for k in range(V.shape[0]):
+        out[k] = 0.5 * math.log(V[k, 0, 0] * V[k, 1, 1] - V[k, 0, 1] * V[k, 1, 0])
+    return out
 
 
 @njit(cache=True)
@@ -189,14 +216,13 @@ def _gated_reports(h, after, blk, hyp, cfg, out):
     return n
 
 
-@njit(cache=True)
-def decide(j, cand, nc, c_h, c_score, c_mean, c_cov, c_logc, check_gate, blk, hyp, istate, fstate, cfg, mark=True):
-    """Decide report j among candidate pairs ``cand[:nc]`` (indices into the c_* arrays) and apply the
-    estimation step; returns DONE, or WIDEN when the gate bound fails (nothing changed then). ``mark``:
-    flag the later reports of the block in the changed hypothesis's gate as conflicted (block walk)."""
-    z, V, t, log_unseen, half_logdet_v, conflicted, assign = blk[0], blk[1], blk[2], blk[3], blk[4], blk[5], blk[6]
-    Hm, Hc, Hlogc, Hcount, Ht, dirty, dirty_list, low, is_low = hyp
-    gamma, terrain_ratio, log_rmax, s_kind, s_param, motion, q, vel_std = cfg
+@njit(cache=True, inline="always")
+def _choose(j, cand, nc, c_h, c_score, check_gate, blk, hyp, istate, fstate, cfg):
+    """Fig. 3's choice for report j among candidate pairs ``cand[:nc]`` (indices into c_h, c_score):
+    returns (DONE, the chosen pair or -1 for a new hypothesis), or (WIDEN, -1) when the gate bound fails."""
+    z, V, t, log_unseen, half_logdet_v = blk[0], blk[1], blk[2], blk[3], blk[4]
+    Hm, Hc, Hlogc, Ht, low = hyp[0], hyp[1], hyp[2], hyp[4], hyp[7]
+    gamma, terrain_ratio, log_rmax, s_kind, s_param, motion, q = cfg[0], cfg[1], cfg[2], cfg[3], cfg[4], cfg[5], cfg[6]
     n = istate[0]
     best = -np.inf
     arg = -1
@@ -231,12 +257,27 @@ def decide(j, cand, nc, c_h, c_score, c_mean, c_cov, c_logc, check_gate, blk, hy
             need = max(need, 2.0 * (glob - top))
         if need > 0.0:
             fstate[1] = need * (1.0 + 1e-12) + 1e-9
-            return WIDEN
-    D = Hm.shape[1]
+            return WIDEN, -1
     if arg < 0 or unseen > best:
-        h = n
-        Hm[h, :] = 0.0
-        Hc[h, :, :] = 0.0
+        return DONE, -1
+    return DONE, arg
+
+
+@njit(cache=True, inline="always")
+def _apply(j, h, c_mean, c_cov, p, log_c, mark, blk, hyp, istate, fstate, cfg):
+    """The estimation step of report j: a new hypothesis (h = -1) from the report, else hypothesis h
+    becomes the posterior of candidate p (c_mean[p] (D,), c_cov[p] (D, D), ln c). ``mark``: flag the later reports of the block
+    in the changed hypothesis's gate as conflicted (block walk)."""
+    z, V, t, log_unseen, conflicted, assign = blk[0], blk[1], blk[2], blk[3], blk[5], blk[6]
+    Hm, Hc, Hlogc, Hcount, Ht, dirty, dirty_list, low, is_low = hyp
+    motion, vel_std = cfg[5], cfg[7]
+    D = Hm.shape[1]
+    if h < 0:
+        h = istate[0]
+        for a in range(D):
+            Hm[h, a] = 0.0
+            for b in range(D):
+                Hc[h, a, b] = 0.0
         Hm[h, 0] = z[j, 0]
         Hm[h, 1] = z[j, 1]
         for a in range(2):
@@ -247,12 +288,13 @@ def decide(j, cand, nc, c_h, c_score, c_mean, c_cov, c_logc, check_gate, blk, hy
                 Hc[h, a, a] = vel_std * vel_std
         Hlogc[h] = log_unseen[j]
         Hcount[h] = 1
-        istate[0] = n + 1
+        istate[0] = h + 1
     else:
-        h = c_h[arg]
-        Hm[h, :] = c_mean[arg]
-        Hc[h, :, :] = c_cov[arg]
-        Hlogc[h] = c_logc[arg]
+        for a in range(D):
+            Hm[h, a] = c_mean[p, a]
+            for b in range(D):
+                Hc[h, a, b] = c_cov[p, a, b]
+        Hlogc[h] = log_c
         Hcount[h] += 1
     Ht[h] = t[j]
     if Hlogc[h] < fstate[0] and not is_low[h]:
@@ -271,6 +313,20 @@ def decide(j, cand, nc, c_h, c_score, c_mean, c_cov, c_logc, check_gate, blk, hy
             conflicted[buf[i]] = True
     istate[2] += 1
     assign[j] = h
+
+
+@njit(cache=True)
+def decide(j, cand, nc, c_h, c_score, c_mean, c_cov, c_logc, check_gate, blk, hyp, istate, fstate, cfg, mark=True):
+    """Decide report j among candidate pairs ``cand[:nc]`` (indices into the c_* arrays) and apply the
+    estimation step; returns DONE, or WIDEN when the gate bound fails (nothing changed then). ``mark``:
+    flag the later reports of the block in the changed hypothesis's gate as conflicted (block walk)."""
+    status, arg = _choose(j, cand, nc, c_h, c_score, check_gate, blk, hyp, istate, fstate, cfg)
+    if status != DONE:
+        return status
+    if arg < 0:
+        _apply(j, -1, c_mean, c_cov, 0, 0.0, mark, blk, hyp, istate, fstate, cfg)
+    else:
+        _apply(j, c_h[arg], c_mean, c_cov, arg, c_logc[arg], mark, blk, hyp, istate, fstate, cfg)
     return DONE
 
 
@@ -417,26 +473,27 @@ def link_pairs(j, pool, istate, f_rep, f_h, f_score, f_mean, f_cov, f_logc, hyp,
 
 # ----------------------------------------------------------------------------- the hypotheses' grid
 # Static hypotheses kept in a uniform grid of square cells across the tracker's whole run (``hgrid =
-# (geo, head, nxt, prv, cell_of)``, geo = [x0, y0, cell, nx, ny, lam_a, lam_wide]): a hypothesis is
-# linked into the list of the cell holding its mean (positions outside the grid go to its border
-# cells, so a clamped query still finds them), lam_a bounds the largest eigenvalue of every listed
-# hypothesis covariance (m²). A hypothesis wider than lam_wide goes to one extra list (head[nx·ny])
+# (geo, head, nxt, prv, cell_of, cell_lam)``, geo = [x0, y0, cell, nx, ny, lam_a, lam_wide]): a
+# hypothesis is linked into the list of the cell holding its mean (positions outside the grid go to
+# its border cells, so a clamped query still finds them), lam_a bounds the largest eigenvalue of every
+# listed hypothesis covariance (m²) and cell_lam[c] that of every hypothesis ever placed in cell c (a
+# query skips a cell too far from the report for any of them to gate it). A hypothesis wider than lam_wide goes to one extra list (head[nx·ny])
 # that every query scans, so one huge hypothesis cannot widen every query. A block's gate is then one
 # query per report instead of a structure rebuilt over all hypotheses per block.
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _cell_index(v, v0, cell, n):
     """Cell of coordinate v (m) on an axis of n cells from v0, clamped to the grid (float first: no overflow)."""
     c = math.floor((v - v0) / cell)
     return int(min(max(c, 0.0), n - 1.0))
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def grid_place(idx, Hm, Hc, hgrid):
     """(Re)link hypotheses ``idx`` into the cell of their current mean (or the wide list) and raise lam_a
-    to cover those in cells."""
-    geo, head, nxt, prv, cell_of = hgrid
+    and their cells' cell_lam to cover them."""
+    geo, head, nxt, prv, cell_of, cell_lam = hgrid
     x0, y0, cell, nx, ny = geo[0], geo[1], geo[2], geo[3], geo[4]
     for i in range(idx.shape[0]):
         h = idx[i]
@@ -446,6 +503,7 @@ def grid_place(idx, Hm, Hc, hgrid):
         else:
             geo[5] = max(geo[5], lam)
             c = _cell_index(Hm[h, 0], x0, cell, nx) * int(ny) + _cell_index(Hm[h, 1], y0, cell, ny)
+            cell_lam[c] = max(cell_lam[c], lam)
         if cell_of[h] != c:
             relink(head, nxt, prv, cell_of, h, c)
 
@@ -471,19 +529,33 @@ def _scan(h, k, z, V, gamma, Hm, Hc, nxt, out, n):
 @njit(cache=True, inline="always")
 def _grid_query(k, z, V, gamma, Hm, Hc, hgrid, out):
     """Hypotheses of the grid gating report k at d² <= gamma, into ``out`` (as many as fit: pass an empty
-    one to count); returns their number. The query square has half-side √(γ(λ_max(V_k) + lam_a)) ≥ the largest
-    distance of a gated mean in a cell, since d² >= |z - a|² / λ_max(A + V); the wide list is scanned whole."""
-    geo, head, nxt = hgrid[0], hgrid[1], hgrid[2]
+    one to count); returns their number. A gated mean a is within √(γ(λ_max(V_k) + λ_max(A))) of z,
+    since d² >= |z - a|² / λ_max(A + V): the query square has that half-side with lam_a, and a cell in
+    it is scanned only if its distance from z is within that reach with the cell's cell_lam (border
+    cells reach to infinity outwards: they hold the hypotheses off the grid). The wide list is scanned
+    whole."""
+    geo, head, nxt, cell_lam = hgrid[0], hgrid[1], hgrid[2], hgrid[5]
     x0, y0, cell, nx, ny = geo[0], geo[1], geo[2], geo[3], geo[4]
-    radius = math.sqrt(gamma * (_lam_max(V[k, 0, 0], V[k, 0, 1], V[k, 1, 1]) + geo[5])) * (1.0 + 1e-9)
+    lam_v = _lam_max(V[k, 0, 0], V[k, 0, 1], V[k, 1, 1])
+    radius = math.sqrt(gamma * (lam_v + geo[5])) * (1.0 + 1e-9)
     cx0 = _cell_index(z[k, 0] - radius, x0, cell, nx)
     cx1 = _cell_index(z[k, 0] + radius, x0, cell, nx)
     cy0 = _cell_index(z[k, 1] - radius, y0, cell, ny)
     cy1 = _cell_index(z[k, 1] + radius, y0, cell, ny)
+    # z in cell units, as _cell_index computes them; the 1e-8 slack covers their rounding (~1e-16 relative)
+    u = (z[k, 0] - x0) / cell
+    w = (z[k, 1] - y0) / cell
+    reach = gamma * (1.0 + 1e-8) / (cell * cell)
     n = _scan(head[int(nx) * int(ny)], k, z, V, gamma, Hm, Hc, nxt, out, 0)
     for cx in range(cx0, cx1 + 1):
+        gx = max(cx - u if cx > 0 else 0.0, u - (cx + 1) if cx < nx - 1 else 0.0, 0.0)
         for cy in range(cy0, cy1 + 1):
-            n = _scan(head[cx * int(ny) + cy], k, z, V, gamma, Hm, Hc, nxt, out, n)
+            c = cx * int(ny) + cy
+            h = head[c]
+            if h >= 0:
+                gy = max(cy - w if cy > 0 else 0.0, w - (cy + 1) if cy < ny - 1 else 0.0, 0.0)
+                if gx * gx + gy * gy <= reach * (lam_v + cell_lam[c]):
+                    n = _scan(h, k, z, V, gamma, Hm, Hc, nxt, out, n)
     return n
 
 
@@ -506,22 +578,21 @@ def grid_gate(z, V, gamma, Hm, Hc, hgrid):
 
 
 @njit(cache=True)
-def _candidate_buffers(cap, D):
-    """Room for ``cap`` candidates of a report: hypothesis, score, posterior mean and covariance, ln c, index."""
-    return (np.empty(cap, np.int64), np.empty(cap), np.empty((cap, D)), np.empty((cap, D, D)), np.empty(cap),
-            np.arange(cap))
-
-
-@njit(cache=True)
 def walk_sequential(blk, hyp, istate, fstate, cfg, hgrid):
     """UU/UT, static: the block's reports decided one by one against the current hypotheses, each gated
     with the hypotheses' grid, which is updated after every decision. This is the sequential algorithm
     itself (nothing is scored ahead, so nothing goes stale); a failed gate bound re-queries the grid
-    with the γ that makes it hold (the widening of the block walk). Returns the number of widened gates."""
+    with the γ that makes it hold (the widening of the block walk). A candidate's score is ln G alone
+    (:func:`_static_log_g`); the Gaussian product is computed for the chosen one only, by the same
+    :func:`_pair_geom` as the block walk. Returns the number of widened gates."""
     z, V, log_unseen, assign = blk[0], blk[1], blk[3], blk[6]
     Hm, Hc = hyp[0], hyp[1]
     D = Hm.shape[1]
-    c_h, c_score, c_mean, c_cov, c_logc, idx = _candidate_buffers(64, D)
+    c_h = np.empty(64, np.int64)
+    c_score = np.empty(64)
+    idx = np.arange(64)
+    post_m = np.empty((1, D))
+    post_c = np.empty((1, D, D))
     pm = np.empty(2)
     pc = np.empty((2, 2))
     one = np.empty(1, np.int64)
@@ -532,16 +603,22 @@ def walk_sequential(blk, hyp, istate, fstate, cfg, hgrid):
         while True:
             nc = _grid_query(j, z, V, gamma, Hm, Hc, hgrid, c_h)
             if nc > c_h.shape[0]:
-                c_h, c_score, c_mean, c_cov, c_logc, idx = _candidate_buffers(2 * nc, D)
+                c_h, c_score, idx = np.empty(2 * nc, np.int64), np.empty(2 * nc), np.arange(2 * nc)
                 _grid_query(j, z, V, gamma, Hm, Hc, hgrid, c_h)
             for i in range(nc):
-                c_score[i] = _pair_geom(c_h[i], j, blk, hyp, cfg, c_mean[i], c_cov[i], pm, pc)
-                c_logc[i] = log_unseen[j]  # ln u: the uniform prior's normaliser
-            if decide(j, idx, nc, c_h, c_score, c_mean, c_cov, c_logc, check, blk, hyp, istate, fstate, cfg, False) == DONE:
+                c_score[i] = _static_log_g(c_h[i], j, z, V, Hm, Hc)
+            status, arg = _choose(j, idx, nc, c_h, c_score, check, blk, hyp, istate, fstate, cfg)
+            if status == DONE:
                 break
             gamma = fstate[1]
             check = False
             widened += 1
+        if arg < 0:
+            _apply(j, -1, post_m, post_c, 0, 0.0, False, blk, hyp, istate, fstate, cfg)
+        else:
+            h = c_h[arg]
+            _pair_geom(h, j, blk, hyp, cfg, post_m[0], post_c[0], pm, pc)
+            _apply(j, h, post_m, post_c, 0, log_unseen[j], False, blk, hyp, istate, fstate, cfg)  # ln u
         one[0] = assign[j]
         grid_place(one, Hm, Hc, hgrid)
     return widened

@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import math
+from fractions import Fraction
+
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from tests.tracker.association.helpers import random_covs
 from tracker.association.greedy import _HypothesisGrid
-from tracker.association.walk import grid_gate, grid_place
+from tracker.association.walk import grid_gate, grid_place, half_log_det
 
 
 def _brute(Hm, Hc, z, V, gamma):
@@ -60,7 +63,7 @@ def test_grid_lists_hold_each_hypothesis_once():
         Hm[idx] = rng.uniform(0, 5000, (idx.size, 2))
         grid_place(idx, Hm, Hc, grid.arrays)
     grid_place(np.arange(n), Hm, Hc, grid.arrays)
-    geo, head, nxt, prv, cell_of = grid.arrays
+    geo, head, nxt, prv, cell_of, _ = grid.arrays
     seen = []
     for c in range(head.size):
         h, back = head[c], -1
@@ -69,3 +72,18 @@ def test_grid_lists_hold_each_hypothesis_once():
             seen.append(h)
             back, h = h, nxt[h]
     assert sorted(seen) == list(range(n))
+
+
+def test_half_log_det_within_its_rounding_bound():
+    """Against the exact determinant (rational arithmetic on the float entries): the error of ½ ln det
+    is within the formula's cancellation bound, eps·(|V00 V11| + |V01 V10|)/det, at 1:10^4 elongation too."""
+    rng = np.random.default_rng(5)
+    V = np.concatenate([random_covs(rng, 500, 5.0, 60.0), random_covs(rng, 500, 0.01, 100.0)])
+    got = half_log_det(V)
+    eps = np.finfo(float).eps
+    for k in range(V.shape[0]):
+        a, b, c, d = (Fraction(float(v)) for v in V[k].ravel())
+        exact = a * d - b * c
+        want = 0.5 * math.log(exact)
+        bound = 2.0 * eps * float(abs(a * d) + abs(b * c)) / float(exact) + 4.0 * eps * max(1.0, abs(want))
+        assert abs(got[k] - want) <= bound
