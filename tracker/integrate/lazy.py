@@ -63,6 +63,10 @@ kernel's fine/pyramid test (its rounding): it is planned both ways."""
 FINE_BLOCK = 1024
 """Cells per side of the blocks of means whose Gaussians finer than level 0 read one window of the
 source together (without an in-memory field): the window spans the block's Gaussians, not the block."""
+CELL_BLOCK = 256
+"""Cells per side of the source blocks cached for the fine Gaussians (without a field)."""
+CELL_CACHE_BYTES = 256 << 20
+"""Bytes of float64 source blocks kept for the fine Gaussians."""
 SERIAL_BELOW = 1024
 """Batches of fewer integrals run on one thread (as the tracker's small integrator calls do)."""
 MISSING = 0
@@ -115,6 +119,7 @@ class LazyPyramid:
         self.cells_read = 0
         self.client = client
         self._scattered = None  # (client, the source scattered to its workers)
+        self._cell_blocks: OrderedDict[tuple[int, int], np.ndarray] = OrderedDict()  # for the fine Gaussians
         self._lock = threading.RLock()
 
     # --- levels and tiles -------------------------------------------------------------------
@@ -137,6 +142,26 @@ class LazyPyramid:
         values = read_cells(self.source, self.squared, r0, r1, c0, c1)
         self.cells_read += values.size
         return values
+
+    def _cached_cells(self, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+        """:meth:`_cells` assembled from :data:`CELL_BLOCK`-square blocks of the source kept in an LRU
+        cache of :data:`CELL_CACHE_BYTES` (the fine Gaussians of a stream return to the same cells, and
+        a windowed file decompresses a window on every read): the same values."""
+        b = CELL_BLOCK
+        out = np.empty((r1 - r0, c1 - c0))
+        for br in range(r0 // b, (r1 - 1) // b + 1):
+            for bc in range(c0 // b, (c1 - 1) // b + 1):
+                block = self._cell_blocks.get((br, bc))
+                if block is None:
+                    block = self._cells(br * b, min((br + 1) * b, self.shape[0]), bc * b, min((bc + 1) * b, self.shape[1]))
+                    self._cell_blocks[(br, bc)] = block
+                    while len(self._cell_blocks) * b * b * 8 > CELL_CACHE_BYTES:
+                        self._cell_blocks.popitem(last=False)
+                self._cell_blocks.move_to_end((br, bc))
+                i0, i1 = max(r0, br * b), min(r1, br * b + block.shape[0])
+                j0, j1 = max(c0, bc * b), min(c1, bc * b + block.shape[1])
+                out[i0 - r0 : i1 - r0, j0 - c0 : j1 - c0] = block[i0 - br * b : i1 - br * b, j0 - bc * b : j1 - bc * b]
+        return out
 
     def level_blocks(self, k: int) -> int:
         """Kernel blocks per tile side at level k: ``blocks`` halved every 4 levels (one octave), at least
@@ -388,7 +413,7 @@ class LazyPyramid:
             r1 = int(np.clip(np.floor((v[group] + reach[group]).max()) + 1, r0, h))
             c0 = int(np.clip(np.floor((u[group] - reach[group]).min()), 0, w))
             c1 = int(np.clip(np.floor((u[group] + reach[group]).max()) + 1, c0, w))
-            values = self._cells(r0, r1, c0, c1) if r1 > r0 and c1 > c0 else np.zeros((1, 1))
+            values = self._cached_cells(r0, r1, c0, c1) if r1 > r0 and c1 > c0 else np.zeros((1, 1))
             yield values, np.array([r0, c0, h, w], np.int64), idx[group]
 
     def _tiles_of(self, idx: np.ndarray, uc, vc, cuu, cuv, cvv, widen: int) -> np.ndarray:
