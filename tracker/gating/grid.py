@@ -88,7 +88,7 @@ def build_grid(pos: np.ndarray, members: np.ndarray | None, bucket: np.ndarray, 
                 h = h_dense
                 ncell = np.floor(extent / h).astype(np.int64) + 1
         origin[b], cells[b], dims[b] = lo, h, ncell
-        keys = _cell_keys(p, lo, h, ncell)
+        keys = cell_keys(p, lo, h, ncell)
         ntot = int(np.prod(ncell))
         dense[b] = ntot <= budget
         if dense[b]:
@@ -156,7 +156,14 @@ def bounding_box(pos):
     return lo, hi
 
 
-@njit(cache=True)
+def cell_keys(p: np.ndarray, lo: np.ndarray, h: float, ncell: np.ndarray) -> np.ndarray:
+    """Linear cell key (int64, x fastest) of each point (n, d) in a grid of ``ncell`` cells of
+    edge h (m) from corner ``lo``, on as many threads as n warrants."""
+    with threads_for(p.shape[0], _SORT_PER_THREAD):
+        return _cell_keys(p, lo, h, ncell)
+
+
+@njit(cache=True, parallel=True)
 def _cell_keys(p, lo, h, ncell):
     n, dim = p.shape
     keys = np.empty(n, dtype=np.int64)
@@ -368,14 +375,22 @@ def counting_order(keys, n_keys):
     offset of each key (n_keys + 1,).
 
     Small inputs, one counting sort; more than _FLAT_KEYS keys and values, two (the high bits of
-    the key, then the low bits within each high value), so that every count lives in cache: one counting sort over millions of keys spends its time on cache misses."""
+    the key, then the low bits within each high value), so that every count lives in cache: one
+    counting sort over millions of keys spends its time on cache misses. From _SORT_PER_THREAD
+    keys on, both digits run on several threads."""
     if n_keys <= _FLAT_KEYS or keys.shape[0] <= _FLAT_KEYS:
         return _counting_order_flat(keys, n_keys)
-    return _counting_order_split(keys, n_keys)
+    # slices of the input, one per thread at most (fewer threads run several in turn; reading
+    # numba's thread count here would keep the function out of the cache)
+    chunks = max(1, min(_SORT_MAX_SLICES, keys.shape[0] // _SORT_PER_THREAD))
+    return _counting_order_split(keys, n_keys, chunks)
 
 
 # Key ranges and inputs both above this are sorted in two digits by counting_order.
 _FLAT_KEYS = 1 << 16
+# Keys per thread of counting_order's two-digit sort (about 5 ms of work on one core).
+_SORT_PER_THREAD = 400_000
+_SORT_MAX_SLICES = 16
 
 
 @njit(cache=True)
@@ -393,10 +408,14 @@ def _counting_order_flat(keys, n_keys):
     return order, start
 
 
-@njit(cache=True)
-def _counting_order_split(keys, n_keys):
-    """counting_order in two digits: stably by key >> shift, then within each high value by the
-    low bits (the same permutation and offsets as one counting sort)."""
+@njit(cache=True, parallel=True)
+def _counting_order_split(keys, n_keys, chunks):
+    """counting_order in two digits on ``chunks`` threads: stably by key >> shift, then within
+    each high value by the low bits (the same permutation and offsets as one counting sort).
+
+    First digit: each thread counts and scatters one contiguous slice of the input, its
+    elements of each high value placed after those of the slices before it (so stable).
+    Second digit: each thread sorts a contiguous range of high values (disjoint output)."""
     n = keys.shape[0]
     shift = 0
     while (1 << (2 * shift)) < n_keys:
@@ -404,38 +423,52 @@ def _counting_order_split(keys, n_keys):
     base = np.int64(1) << shift
     mask = base - 1
     n_hi = (n_keys + base - 1) >> shift
-    hi_start = np.zeros(n_hi + 1, dtype=np.int64)
-    for k in keys:
-        hi_start[(k >> shift) + 1] += 1
+    cut = np.empty(chunks + 1, dtype=np.int64)  # input slice of each thread
+    for c in range(chunks + 1):
+        cut[c] = c * n // chunks
+    hist = np.zeros((chunks, n_hi), dtype=np.int64)
+    for c in prange(chunks):
+        for i in range(cut[c], cut[c + 1]):
+            hist[c, keys[i] >> shift] += 1
+    hi_start = np.empty(n_hi + 1, dtype=np.int64)
+    at = 0
     for h in range(n_hi):
-        hi_start[h + 1] += hi_start[h]
-    fill = hi_start[:-1].copy()
+        hi_start[h] = at
+        for c in range(chunks):
+            at, hist[c, h] = at + hist[c, h], at  # hist becomes each slice's fill position
+    hi_start[n_hi] = n
     by_hi = np.empty(n, dtype=np.int64)
     lo = np.empty(n, dtype=np.int64)
-    for i in range(n):
-        h = keys[i] >> shift
-        by_hi[fill[h]] = i
-        lo[fill[h]] = keys[i] & mask
-        fill[h] += 1
+    for c in prange(chunks):
+        for i in range(cut[c], cut[c + 1]):
+            h = keys[i] >> shift
+            by_hi[hist[c, h]] = i
+            lo[hist[c, h]] = keys[i] & mask
+            hist[c, h] += 1
+    h_cut = np.empty(chunks + 1, dtype=np.int64)  # high values of each thread, ~n / chunks keys each
+    for c in range(chunks + 1):
+        h_cut[c] = np.searchsorted(hi_start, c * n // chunks)
+    h_cut[chunks] = n_hi
     start = np.empty(n_keys + 1, dtype=np.int64)
     start[n_keys] = n
     order = np.empty(n, dtype=np.int64)
-    count = np.empty(base, dtype=np.int64)
-    for h in range(n_hi):
-        s, e = hi_start[h], hi_start[h + 1]
-        k0 = h << shift
-        m = min(base, n_keys - k0)
-        count[:m] = 0
-        for a in range(s, e):
-            count[lo[a]] += 1
-        at = s
-        for j in range(m):
-            start[k0 + j] = at
-            at += count[j]
-            count[j] = start[k0 + j]
-        for a in range(s, e):
-            order[count[lo[a]]] = by_hi[a]
-            count[lo[a]] += 1
+    for c in prange(chunks):
+        count = np.empty(base, dtype=np.int64)
+        for h in range(h_cut[c], h_cut[c + 1]):
+            s, e = hi_start[h], hi_start[h + 1]
+            k0 = h << shift
+            m = min(base, n_keys - k0)
+            count[:m] = 0
+            for a in range(s, e):
+                count[lo[a]] += 1
+            at2 = s
+            for j in range(m):
+                start[k0 + j] = at2
+                at2 += count[j]
+                count[j] = start[k0 + j]
+            for a in range(s, e):
+                order[count[lo[a]]] = by_hi[a]
+                count[lo[a]] += 1
     return order, start
 
 
@@ -452,7 +485,7 @@ def spatial_order(pos: np.ndarray) -> np.ndarray:
     # at most n^(1/d) cells along the longest axis, so at most ~n cells in all
     h = float(extent.max()) / np.ceil(n ** (1.0 / pos.shape[1]))
     ncell = np.floor(extent / h).astype(np.int64) + 1
-    return counting_order(_cell_keys(pos, lo, h, ncell), int(np.prod(ncell)))[0]
+    return counting_order(cell_keys(pos, lo, h, ncell), int(np.prod(ncell)))[0]
 
 
 @njit(cache=True)

@@ -32,7 +32,8 @@ def check_gaussians(means: np.ndarray, covs: np.ndarray, what: str, *, means_nam
         raise ValueError(f"{what}: {means_name} must be (N, d) and {covs_name} (N, d, d); got {means.shape} "
                          f"and {covs.shape}")
     if means.shape[1] == 2:
-        flags = _flags_2d(np.ascontiguousarray(means), np.ascontiguousarray(covs))
+        kernel = _flags_2d_parallel if means.shape[0] >= _PARALLEL_FROM else _flags_2d
+        flags = kernel(np.ascontiguousarray(means), np.ascontiguousarray(covs))
     else:
         flags = _flags(np.ascontiguousarray(means), np.ascontiguousarray(covs))
     problems = (f"non-finite {means_name}", f"non-finite {covs_name}", f"{covs_name} not symmetric",
@@ -99,6 +100,34 @@ def _flags(means: np.ndarray, covs: np.ndarray) -> np.ndarray:
     return flags
 
 
+# 2-D Gaussians per batch from which the check runs on every core (1 M take ~55 ms on one): below
+# it a parallel launch, which can wait for a descheduled worker on a loaded machine, costs more than it saves.
+_PARALLEL_FROM = 200_000
+
+
+@nb.njit(cache=True, inline="always")
+def _flag_2d(means: np.ndarray, covs: np.ndarray, n: int) -> int:
+    """The flag of 2-D Gaussian n (see :func:`_flags_2d`)."""
+    a, b, c, d = covs[n, 0, 0], covs[n, 0, 1], covs[n, 1, 0], covs[n, 1, 1]
+    scale = max(max(abs(a), abs(b)), max(abs(c), abs(d)))
+    if not (np.isfinite(means[n, 0]) and np.isfinite(means[n, 1])):
+        return 1
+    if not (np.isfinite(a) and np.isfinite(b) and np.isfinite(c) and np.isfinite(d)):
+        return 2
+    if abs(b - c) > 1e-9 * max(scale, 1e-300):
+        return 3
+    if not (scale > 0.0):
+        return 4
+    a, d, e = a / scale, d / scale, 0.5 * (b + c) / scale
+    big = 0.5 * (a + d) + np.hypot(0.5 * (a - d), e)
+    small = (a * d - e * e) / big if big > 0.0 else -1.0
+    if not (small > 0.0 and a > 0.0):
+        return 4
+    if big > MAX_CONDITION * small:
+        return 5
+    return 0
+
+
 @nb.njit(cache=True)
 def _flags_2d(means: np.ndarray, covs: np.ndarray) -> np.ndarray:
     """:func:`_flags` for 2-D Gaussians in one pass (closed-form eigenvalues), and 5 for a condition
@@ -107,26 +136,18 @@ def _flags_2d(means: np.ndarray, covs: np.ndarray) -> np.ndarray:
     The entries are divided by the largest first, so neither 1e-300 nor 1e300 m² under- or overflows;
     the smaller eigenvalue is det / larger, which keeps its relative accuracy (m - hypot would cancel).
     """
-    flags = np.zeros(means.shape[0], dtype=np.int8)
+    flags = np.empty(means.shape[0], dtype=np.int8)
     for n in range(means.shape[0]):
-        a, b, c, d = covs[n, 0, 0], covs[n, 0, 1], covs[n, 1, 0], covs[n, 1, 1]
-        scale = max(max(abs(a), abs(b)), max(abs(c), abs(d)))
-        if not (np.isfinite(means[n, 0]) and np.isfinite(means[n, 1])):
-            flags[n] = 1
-        elif not (np.isfinite(a) and np.isfinite(b) and np.isfinite(c) and np.isfinite(d)):
-            flags[n] = 2
-        elif abs(b - c) > 1e-9 * max(scale, 1e-300):
-            flags[n] = 3
-        elif not (scale > 0.0):
-            flags[n] = 4
-        else:
-            a, d, e = a / scale, d / scale, 0.5 * (b + c) / scale
-            big = 0.5 * (a + d) + np.hypot(0.5 * (a - d), e)
-            small = (a * d - e * e) / big if big > 0.0 else -1.0
-            if not (small > 0.0 and a > 0.0):
-                flags[n] = 4
-            elif big > MAX_CONDITION * small:
-                flags[n] = 5
+        flags[n] = _flag_2d(means, covs, n)
+    return flags
+
+
+@nb.njit(cache=True, parallel=True)
+def _flags_2d_parallel(means: np.ndarray, covs: np.ndarray) -> np.ndarray:
+    """:func:`_flags_2d` on every core (each Gaussian's flag is independent of the others)."""
+    flags = np.empty(means.shape[0], dtype=np.int8)
+    for n in nb.prange(means.shape[0]):
+        flags[n] = _flag_2d(means, covs, n)
     return flags
 
 

@@ -67,12 +67,17 @@ def test_counting_order_is_a_stable_sort(n, n_keys, spread, seed):
             assert np.array_equal(start, np.searchsorted(keys[order], np.arange(n_keys + 1)))
     finally:
         grid._FLAT_KEYS = flat
+    for chunks in (2, 3, 7):  # the multi-threaded two-digit sort, however the input is sliced
+        order, start = grid._counting_order_split(keys, n_keys, chunks)
+        assert np.array_equal(order, np.argsort(keys, kind="stable"))
+        assert np.array_equal(start, np.searchsorted(keys[order], np.arange(n_keys + 1)))
 
 
 def test_counting_order_two_digits_compiled():
-    """The compiled two-digit path on a grid-sized input (millions of cells)."""
+    """The compiled two-digit path on a grid-sized input (millions of cells), on several
+    threads (more than _SORT_PER_THREAD keys)."""
     rng = np.random.default_rng(3)
-    keys = rng.integers(0, 3_000_001, 200_000)
+    keys = rng.integers(0, 3_000_001, 2 * grid._SORT_PER_THREAD + 1)
     order, start = counting_order(keys, 3_000_001)
     assert np.array_equal(order, np.argsort(keys, kind="stable"))
     assert np.array_equal(start, np.searchsorted(keys[order], np.arange(3_000_002)))

@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from tracker.types.reports import _flags, _flags_2d, check_gaussians
+from tracker.types.reports import _PARALLEL_FROM, _flags, _flags_2d, _flags_2d_parallel, check_gaussians
 
 
 def numpy_flags(means: np.ndarray, covs: np.ndarray) -> np.ndarray:
@@ -54,6 +54,16 @@ def test_numba_flags_follow_the_numpy_formula(seed, n, d):
     np.testing.assert_array_equal(_flags(means, covs), want)
     if d == 2:
         np.testing.assert_array_equal(_flags_2d(means, covs), want)
+        np.testing.assert_array_equal(_flags_2d_parallel(means, covs), want)
+
+
+def test_parallel_2d_pass_matches_the_serial_one_on_a_large_batch():
+    # check_gaussians switches to the parallel kernel from _PARALLEL_FROM Gaussians on
+    means, covs = gaussians(7, _PARALLEL_FROM + 1, 2)
+    covs[::97] = np.array([[1.0, 1.0 - 1e-13], [1.0 - 1e-13, 1.0]])  # too ill-conditioned (5)
+    want = _flags_2d(means, covs)
+    assert set(np.unique(want)) == {0, 1, 2, 3, 4, 5}
+    np.testing.assert_array_equal(_flags_2d_parallel(means, covs), want)
 
 
 def test_messages_name_the_argument_and_indices():
