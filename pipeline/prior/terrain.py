@@ -21,6 +21,7 @@ import numpy as np
 import rasterio
 
 from pipeline.gis.grid import Grid, GridError
+from pipeline.prior.windowed import WINDOWED_CELLS, WindowedDensity
 from pipeline.prior.write import (
     BLOCK,
     BUILD_TAG,
@@ -30,7 +31,6 @@ from pipeline.prior.write import (
     table_hash,
     write_prior,
 )
-from pipeline.prior.windowed import WINDOWED_CELLS, WindowedDensity
 
 DENSITY_TOL = 1e-5
 """How far a read prior's integral of r, and its tables' last row and column totals (relative to the
@@ -135,9 +135,11 @@ def _density_sums(strips, cell_area: float, bad_message: str) -> tuple[float, fl
         mass = d * cell_area
         total += float(d.sum()) * cell_area
         top = max(top, float(d.max()))
-        cols, rows = cols + mass.sum(axis=0), [*rows, mass.sum(axis=1)]
+        cols = cols + mass.sum(axis=0)
+        rows.append(mass.sum(axis=1))
         mass *= d
-        cols2, rows2 = cols2 + mass.sum(axis=0), [*rows2, mass.sum(axis=1)]
+        cols2 = cols2 + mass.sum(axis=0)
+        rows2.append(mass.sum(axis=1))
     return total, top, ((cols, np.concatenate(rows)), (cols2, np.concatenate(rows2)))
 
 

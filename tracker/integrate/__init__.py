@@ -20,7 +20,7 @@ import numpy as np
 
 from pipeline.prior import TerrainPrior
 from tracker.integrate import scalespace
-from tracker.integrate.lazy import lazy_pyramid
+from tracker.integrate.lazy import lazy_pyramid, window_groups
 from tracker.integrate.reference import covered_mass, reference_integrate
 from tracker.integrate.terraces import (
     MASS,
@@ -32,7 +32,14 @@ from tracker.integrate.terraces import (
     near_grid,
     pixel_gaussians,
 )
-from tracker.integrate.tiny import READ_SPAN, TINY, few_cell_integrals, is_few_cells, is_tiny, tiny_integrals
+from tracker.integrate.tiny import (
+    READ_SPAN,
+    TINY,
+    few_cell_integrals,
+    is_few_cells,
+    is_tiny,
+    tiny_integrals,
+)
 from tracker.types.reports import MAX_CONDITION, check_gaussians
 
 __all__ = [
@@ -209,18 +216,9 @@ def cell_integrals(prior: TerrainPrior, kernel, squared: bool, uc, vc, cuu, cuv,
         field = np.asarray(density, dtype=np.float64)
         return kernel(field * field if squared else field, 0, 0, uc, vc, cuu, cuv, cvv)
     out = np.empty(uc.shape[0])
-    h, w = prior.grid.shape
-    su, sv = np.sqrt(cuu) * READ_SPAN + 2.0, np.sqrt(cvv) * READ_SPAN + 2.0
-    c_lo, c_hi = np.floor(uc - su), np.floor(uc + su) + 1.0
-    r_lo, r_hi = np.floor(vc - sv), np.floor(vc + sv) + 1.0
-    side = WINDOW_BLOCK
-    keys = np.clip(np.floor(vc / side), -1, h // side + 1) * (w // side + 3) + np.clip(np.floor(uc / side), -1, w // side + 1)
-    order = np.argsort(keys, kind="stable")
-    starts = np.flatnonzero(np.r_[True, np.diff(keys[order]) != 0])
-    for group in np.split(order, starts[1:]):
-        r0, r1 = int(max(r_lo[group].min(), 0)), int(min(r_hi[group].max(), h))
-        c0, c1 = int(max(c_lo[group].min(), 0)), int(min(c_hi[group].max(), w))
-        field = density[r0:max(r1, r0), c0:max(c1, c0)]
+    reach_u, reach_v = np.sqrt(cuu) * READ_SPAN + 2.0, np.sqrt(cvv) * READ_SPAN + 2.0
+    for group, (r0, r1, c0, c1) in window_groups(uc, vc, reach_u, reach_v, prior.grid.shape, WINDOW_BLOCK):
+        field = density[r0:r1, c0:c1]
         out[group] = kernel(field * field if squared else field, r0, c0, *(a[group] for a in (uc, vc, cuu, cuv, cvv)))
     return out
 

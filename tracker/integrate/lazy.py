@@ -211,17 +211,13 @@ class LazyPyramid:
         if need > self.n_slots:
             raise MemoryError(f"LazyPyramid: a cache of {self.pool.nbytes / 2**20:.0f} MiB cannot hold the tiles one batch needs "
                               f"({need} blocks at once)")
-        threads = nb.get_num_threads()
         # A tile's kernels take ~50 µs on one thread; a parallel launch can cost more than that on busy cores.
-        nb.set_num_threads(1)
-        try:
+        with _threads(1):
             for m, v0, v1, u0, u1 in reversed(plan):
                 for a in range(v0, v1 + 1):
                     for b in range(u0, u1 + 1):
                         if (m, a, b) not in self._tiles:
                             self._build(m, a, b)
-        finally:
-            nb.set_num_threads(threads)
 
     def _values(self, k: int, j0: int, j1: int, i0: int, i1: int) -> np.ndarray:
         """f_{s_k} (float64) at the nodes [j0, j1) x [i0, i1) of a level k >= CELL_LEVELS: the trapezoid
@@ -366,16 +362,12 @@ class LazyPyramid:
         """Integrals ``todo`` (kernel order) with their tiles built, widening the plan for any whose
         look-ups found a block missing (NaN); ``values``/``frame``: the cells for Gaussians finer than
         level 0 (:func:`~tracker.integrate.scalespace._window`)."""
-        threads = nb.get_num_threads()
-        nb.set_num_threads(1 if todo.size < SERIAL_BELOW else threads)  # a parallel launch costs more than small batches
-        try:
+        with _threads(_threads_for(todo.size)):
             for widen in (0, 1, 2):
                 if not todo.size:
                     break
                 self._run(values, frame, todo, uc, vc, cuu, cuv, cvv, widen, out, counts)
                 todo = todo[np.isnan(out[todo]) & (counts[todo] >= 0)]
-        finally:
-            nb.set_num_threads(threads)
         if todo.size:
             raise RuntimeError(f"LazyPyramid: {todo.size} integrals still miss tiles after widening the plan")
 
@@ -383,14 +375,10 @@ class LazyPyramid:
         """Integrals ``idx``, which the kernel takes as finer than level 0 (they read cells, no tiles),
         smoothed from windows of the source (:meth:`_fine_windows`)."""
         p = self.packed()
-        threads = nb.get_num_threads()
-        try:
-            for values, frame, group in self._fine_windows(idx, uc, vc, cuu, cuv, cvv):
-                nb.set_num_threads(1 if group.size < SERIAL_BELOW else threads)
+        for values, frame, group in self._fine_windows(idx, uc, vc, cuu, cuv, cvv):
+            with _threads(_threads_for(group.size)):
                 ss._kernel(values, frame, ss.PHI_TABLE, p.coef, self.slots, p.scale, p.step, p.u0, p.v0, p.nu, p.nv, p.offset,
                            uc, vc, cuu, cuv, cvv, group, out, counts, nb.get_num_threads())
-        finally:
-            nb.set_num_threads(threads)
 
     def _fine_windows(self, idx: np.ndarray, uc, vc, cuu, cuv, cvv):
         """(values, frame, Gaussians) per block of :data:`FINE_BLOCK` cells of the means of the Gaussians
@@ -404,15 +392,7 @@ class LazyPyramid:
         m, dd = 0.5 * (a + c), 0.5 * (a - c)
         rad = np.sqrt(dd * dd + b * b)
         reach = GH_SPAN * np.sqrt(m + rad) + 5.0 * np.sqrt(np.maximum(m - rad, 0.0)) + 3.0
-        u, v = uc[idx], vc[idx]
-        keys = np.clip(np.floor(v / FINE_BLOCK), -1, h // FINE_BLOCK + 1) * (w // FINE_BLOCK + 3) + np.clip(np.floor(u / FINE_BLOCK), -1, w // FINE_BLOCK + 1)
-        order = np.argsort(keys, kind="stable")
-        starts = np.flatnonzero(np.r_[True, np.diff(keys[order]) != 0])
-        for group in np.split(order, starts[1:]):
-            r0 = int(np.clip(np.floor((v[group] - reach[group]).min()), 0, h))
-            r1 = int(np.clip(np.floor((v[group] + reach[group]).max()) + 1, r0, h))
-            c0 = int(np.clip(np.floor((u[group] - reach[group]).min()), 0, w))
-            c1 = int(np.clip(np.floor((u[group] + reach[group]).max()) + 1, c0, w))
+        for group, (r0, r1, c0, c1) in window_groups(uc[idx], vc[idx], reach, reach, self.shape, FINE_BLOCK):
             values = self._cached_cells(r0, r1, c0, c1) if r1 > r0 and c1 > c0 else np.zeros((1, 1))
             yield values, np.array([r0, c0, h, w], np.int64), idx[group]
 
@@ -475,6 +455,40 @@ class LazyPyramid:
                 self._pinned_blocks = 0
 
 
+@contextmanager
+def _threads(n: int) -> Iterator[None]:
+    """numba's thread count set to ``n`` within the block (numba keeps it per calling thread)."""
+    before = nb.get_num_threads()
+    nb.set_num_threads(n)
+    try:
+        yield
+    finally:
+        nb.set_num_threads(before)
+
+
+def _threads_for(size: int) -> int:
+    """Threads for a kernel call of ``size`` integrals: one below :data:`SERIAL_BELOW` (a parallel launch
+    costs more than small batches), else the caller's."""
+    return 1 if size < SERIAL_BELOW else nb.get_num_threads()
+
+
+def window_groups(u: np.ndarray, v: np.ndarray, reach_u: np.ndarray, reach_v: np.ndarray, shape: tuple[int, int],
+                  block: int) -> Iterator[tuple[np.ndarray, tuple[int, int, int, int]]]:
+    """The points (u, v) (pixels) per ``block``-cell square of the grid they fall in (off-grid ones in
+    the border squares): (their indices, (r0, r1, c0, c1)) with the window of cells, clipped to the
+    (H, W) grid, that covers every point ± its reach (cells [floor(v - reach_v), floor(v + reach_v)] ...)."""
+    h, w = shape
+    keys = np.clip(np.floor(v / block), -1, h // block + 1) * (w // block + 3) + np.clip(np.floor(u / block), -1, w // block + 1)
+    order = np.argsort(keys, kind="stable")
+    starts = np.flatnonzero(np.r_[True, np.diff(keys[order]) != 0])
+    for group in np.split(order, starts[1:]):
+        r0 = int(np.clip(np.floor((v[group] - reach_v[group]).min()), 0, h))
+        r1 = int(np.clip(np.floor((v[group] + reach_v[group]).max()) + 1, r0, h))
+        c0 = int(np.clip(np.floor((u[group] - reach_u[group]).min()), 0, w))
+        c1 = int(np.clip(np.floor((u[group] + reach_u[group]).max()) + 1, c0, w))
+        yield group, (r0, r1, c0, c1)
+
+
 def read_cells(source: CellSource, squared: bool, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
     """The float64 values (r, or r² when ``squared``) of cells [r0, r1) x [c0, c1) of ``source``."""
     values = np.ascontiguousarray(source[r0:r1, c0:c1], dtype=np.float64)
@@ -516,12 +530,8 @@ def cell_tile(source: CellSource, squared: bool, shape: tuple[int, int], k: int,
         read[0] += cells.size
         return ss._separable(cells, su - c0, wu, sv - r0, wv)
 
-    threads = nb.get_num_threads()
-    nb.set_num_threads(1)  # a tile's kernels are short: one thread each (a worker's threads share the cores)
-    try:
+    with _threads(1):  # a tile's kernels are short: one thread each (a worker's threads share the cores)
         return _padded_coefficients(values, nu, nv, side, tv, tu), read[0]
-    finally:
-        nb.set_num_threads(threads)
 
 
 def _tile_keys(k: int, lo_u, hi_u, lo_v, hi_v) -> np.ndarray:

@@ -2,12 +2,9 @@
 the same file read into memory.
 
 Oracles: the in-memory read of the same GeoTIFF (``windowed=False``) through the same integrators, bit for
-bit where both take the same path; the dense reference integration where the windowed path takes another
-exact method (Gaussians finer than the pyramid, which the in-memory lazy pyramid smooths from its field)."""
+bit (the windowed path reads the same cells from windows); and the dense reference integration."""
 
 from __future__ import annotations
-
-from pathlib import Path
 
 import numpy as np
 import pytest

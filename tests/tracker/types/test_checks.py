@@ -9,7 +9,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from tracker.types.reports import _PARALLEL_FROM, _flags, _flags_2d, _flags_2d_parallel, check_gaussians
+from tracker.types.reports import (
+    _PARALLEL_FROM,
+    _flags,
+    _flags_2d,
+    _flags_2d_parallel,
+    check_gaussians,
+)
 
 
 def numpy_flags(means: np.ndarray, covs: np.ndarray) -> np.ndarray:
