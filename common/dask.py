@@ -12,6 +12,10 @@ from contextlib import contextmanager
 
 from distributed import Client
 
+CONNECT_TIMEOUT = "10s"
+"""How long :func:`get_client` keeps retrying a scheduler address before it gives up (Dask's
+duration string): a refused connection is retried until then."""
+
 
 def get_client(address: str | None = None, threads: int | None = None) -> Client:
     """A Dask client: ``Client(address)`` for a running scheduler (e.g. ``"tcp://10.0.0.5:8786"``),
@@ -25,7 +29,7 @@ def get_client(address: str | None = None, threads: int | None = None) -> Client
         return Client(processes=False, n_workers=1, threads_per_worker=threads or os.cpu_count() or 1,
                       dashboard_address=None)
     try:
-        return Client(address, timeout="10s")
+        return Client(address, timeout=CONNECT_TIMEOUT)
     except OSError as exc:  # distributed raises OSError (TimeoutError) for an unreachable scheduler
         raise ValueError(f"--scheduler {address}: cannot connect to a Dask scheduler there ({exc})") from exc
 

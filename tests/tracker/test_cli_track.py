@@ -143,8 +143,9 @@ def test_run_on_a_windowed_prior_with_tiles_built_on_a_cluster(files, monkeypatc
     assert f"-> {want.n_detected} targets" in capsys.readouterr().out
 
 
-def test_run_with_an_unreachable_scheduler_names_it(files, capsys):
+def test_run_with_an_unreachable_scheduler_names_it(files, capsys, monkeypatch):
     d, _, _ = files
+    monkeypatch.setattr("common.dask.CONNECT_TIMEOUT", "1s")  # port 9 refuses at once; Dask retries until the timeout
     code = main(["run", "--prior", str(d / "prior.tif"), "--reports", str(d / "reports.csv"),
                  "--scheduler", "tcp://127.0.0.1:9", "--out", str(d / "never.gpkg")])
     err = capsys.readouterr().err
