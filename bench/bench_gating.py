@@ -27,7 +27,7 @@ from tracker.study.projections import predicted_choice
 FIGURES = Path(__file__).resolve().parent / "figures"
 GAMMA = gate_threshold(0.99, 2)
 # Calls per setting and round in the moving sweeps (best of them): auto and every candidate alike.
-MOVING_INNER = 3
+MOVING_INNER = 5
 
 
 def _covs(rng: np.random.Generator, n: int, lo: float, hi: float) -> np.ndarray:
@@ -213,13 +213,19 @@ def bench_moving(n: int, rounds: int, ms: list[int], constants: CostConstants,
     t_auto = sweep.pop("auto")
     best_key = min(sweep, key=sweep.get)
     t_one = min(sweep["reports:1"], sweep["tracks:1"])
-    # per round: auto (cost model included) against the best setting of the same round, each
-    # the best of MOVING_INNER back-to-back calls
-    auto_over_best = [r["auto"] / min(v for k, v in r.items() if k != "auto") for r in rounds_s]
+    # Per round, each timing the best of MOVING_INNER back-to-back calls: auto (cost model
+    # included) against the best setting (the run's fastest) timed in the same round — the goal
+    # figure —, and against the least of all settings' timings in that round. The second divides by
+    # the minimum of 14-19 scattered timings, so it exceeds 1 even for an exact pick; the best
+    # setting's own time over that minimum is its noise floor (what a perfect pick would score).
+    auto_over_best = [r["auto"] / r[best_key] for r in rounds_s]
+    round_min = [min(v for k, v in r.items() if k != "auto") for r in rounds_s]
     return {
         "n": n, "per_km2": per_km2, "pairs": int(res["auto"][0].size), "sweep_s": sweep,
         "auto_over_best_per_round": auto_over_best,
         "auto_over_best_worst": max(auto_over_best),
+        "auto_over_round_min_per_round": [r["auto"] / lo for r, lo in zip(rounds_s, round_min, strict=True)],
+        "best_over_round_min_per_round": [r[best_key] / lo for r, lo in zip(rounds_s, round_min, strict=True)],
         "identical": bool(all(_same(res["auto"], v) for v in res.values())),
         "chosen": chosen, "predicted_chosen_s": float(min(choice.cost_tracks.min(),
                                                           choice.cost_reports.min())),
@@ -308,8 +314,8 @@ def bench_scaling(sizes: list[int], ref_max: int) -> dict:
     return {"rows": rows, "loglog_slope_n_ge_1e4": slope}
 
 
-def _ratios(m: dict) -> str:
-    return ", ".join(f"{x:.2f}" for x in m["auto_over_best_per_round"])
+def _ratios(m: dict, key: str = "auto_over_best_per_round") -> str:
+    return ", ".join(f"{x:.2f}" for x in m[key])
 
 
 def _plot_scaling(rows) -> None:
@@ -376,7 +382,9 @@ def run(quick: bool = False) -> dict:
            "value": f"{r['auto_over_best_worst']:.2f} (rounds {_ratios(r)}; auto {r['auto_total_s']:.3f} s; "
                     f"the pick {r['chosen']} best of rounds / the best setting's: {r['chosen_over_best']:.2f})",
            "goal": "<= 1.2 in every round", "same-run baseline":
-               f"best of {len(r['sweep_s'])} settings per round, each best of {MOVING_INNER} calls ({r['best']} {r['best_s']:.3f} s at best)",
+               f"the best of {len(r['sweep_s'])} settings ({r['best']}, {r['best_s']:.3f} s at best) timed in the same round, "
+               f"each timing the best of {MOVING_INNER} calls; auto / the least timing of each round: "
+               f"{_ratios(r, 'auto_over_round_min_per_round')} (the best setting's own: {_ratios(r, 'best_over_round_min_per_round')})",
            "meets_goal": r["goal_met"]} for r in (m, md)],
         {"what": f"adversarial scenes ({len(adv)}): gate / (brute force + lexsort), worst",
          "value": f"{worst_adv['gate_over_brute']:.3f} ({worst_adv['scene']})", "goal": "<= 1 on every scene",
