@@ -129,8 +129,8 @@ def _distance_feature(spec: FeatureSpec, layers: _Layers, grid) -> Feature:
         except ValueError as e:
             raise LayerError(f"[features.{spec.name}] (to = \"ends\") of layers {list(spec.layers)}: {e}") from None
     m = rasterize.mask(geoms, padded, spec.buffer_m, spec.all_touched)
-    d = distance_m(m, grid.dx, grid.dy, spec.max_distance_m)[pad_r:pad_r + grid.height, pad_c:pad_c + grid.width]
-    return Feature(spec.name, np.ascontiguousarray(d), "continuous", units="m")
+    d = distance_m(m, grid.dx, grid.dy, spec.max_distance_m, window=(pad_r, pad_c, grid.height, grid.width))
+    return Feature(spec.name, d, "continuous", units="m")
 
 
 def _slope_feature(spec: FeatureSpec, layers: _Layers, grid) -> Feature:

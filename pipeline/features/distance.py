@@ -43,18 +43,20 @@ def _column_offsets(mask: np.ndarray, g: np.ndarray) -> None:
 
 
 @nb.njit(cache=True, parallel=True)
-def _row_envelopes(g: np.ndarray, dx: float, dy: float, cap: float, out: np.ndarray) -> None:
-    """out[r, c] = min_q sqrt((dx*(c-q))^2 + (dy*g[r,q])^2), capped at ``cap`` (inf: no cap)."""
-    h, w = g.shape
-    for r in nb.prange(h):
+def _row_envelopes(g: np.ndarray, dx: float, dy: float, cap: float, r0: int, c0: int, out: np.ndarray) -> None:
+    """out[r, c] = min_q sqrt((dx*(c0+c-q))^2 + (dy*g[r0+r,q])^2), capped at ``cap`` (inf: no cap): the
+    window of ``out``'s shape at row r0, column c0 of the distances, every column q of g a candidate."""
+    w = g.shape[1]
+    for r in nb.prange(out.shape[0]):
+        gr = g[r0 + r]
         f = np.empty(w, dtype=np.float64)  # squared column distance, metres^2
         v = np.empty(w, dtype=np.int64)  # columns of the parabolas in the envelope
         z = np.empty(w + 1, dtype=np.float64)  # envelope breakpoints, metres
         k = -1
         for q in range(w):
-            if g[r, q] == _NONE:
+            if gr[q] == _NONE:
                 continue
-            f[q] = (dy * g[r, q]) ** 2
+            f[q] = (dy * gr[q]) ** 2
             pq = dx * q
             while k >= 0:
                 pv = dx * v[k]
@@ -68,12 +70,12 @@ def _row_envelopes(g: np.ndarray, dx: float, dy: float, cap: float, out: np.ndar
             z[k] = -np.inf if k == 0 else s
             z[k + 1] = np.inf
         if k < 0:
-            for c in range(w):
+            for c in range(out.shape[1]):
                 out[r, c] = cap
             continue
         j = 0
-        for c in range(w):
-            pc = dx * c
+        for c in range(out.shape[1]):
+            pc = dx * (c0 + c)
             while z[j + 1] < pc:
                 j += 1
             d = np.sqrt((pc - dx * v[j]) ** 2 + f[v[j]])
@@ -86,13 +88,16 @@ def distance_m(
     dy: float,
     max_distance: float | None = None,
     dtype: type = np.float64,
+    window: tuple[int, int, int, int] | None = None,
 ) -> np.ndarray:
     """Euclidean distance in metres from each cell centre to the nearest True cell centre.
 
     ``mask``: 2-D boolean (True = target, distance 0). ``dx``, ``dy``: cell width and height in
     metres. ``max_distance`` (metres) caps the result; with no True cell at all every cell gets
     ``max_distance`` (or ``inf`` when it is None). ``dtype``: float64, or float32 to halve memory on
-    very large grids (about 7 significant digits).
+    very large grids (about 7 significant digits). ``window`` (row, column, height, width): return only
+    that part of the distances, still measured to every True cell of ``mask`` (a padded mask's inner
+    grid, without a full-size output and a copy).
     """
     mask = np.asarray(mask)
     if mask.ndim != 2:
@@ -107,10 +112,13 @@ def distance_m(
     if np.dtype(dtype) not in (np.dtype(np.float32), np.dtype(np.float64)):
         raise ValueError(f"distance_m: dtype must be float32 or float64, got {dtype}")
     cap = np.inf if max_distance is None else float(max_distance)
-    out = np.empty(mask.shape, dtype=dtype)
-    if mask.size == 0:
+    r0, c0, h, w = (0, 0, *mask.shape) if window is None else window
+    if not (min(r0, c0, h, w) >= 0 and r0 + h <= mask.shape[0] and c0 + w <= mask.shape[1]):
+        raise ValueError(f"distance_m: window {window} is not inside the mask's {mask.shape}")
+    out = np.empty((h, w), dtype=dtype)
+    if out.size == 0 or mask.size == 0:
         return out
     g = np.empty(mask.shape, dtype=np.int32)
     _column_offsets(np.ascontiguousarray(mask), g)
-    _row_envelopes(g, float(dx), float(dy), cap, out)
+    _row_envelopes(g, float(dx), float(dy), cap, r0, c0, out)
     return out

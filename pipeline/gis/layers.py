@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import os
 import shutil
 import tempfile
 import warnings
@@ -275,6 +276,7 @@ def read_raster(spec: LayerSpec, grid: Grid, categorical: bool = False) -> np.nd
     reproject(
         src_data, out, src_transform=src_transform, src_crs=src_crs, src_nodata=src_nd,
         dst_transform=grid.transform, dst_crs=grid.crs, dst_nodata=dst_nd, resampling=method,
+        num_threads=os.cpu_count() or 1,  # GDAL warps chunks independently: the same numbers on any count
     )
     empty = (out == NODATA_CODE).all() if categorical else np.isnan(out).all()
     if empty:

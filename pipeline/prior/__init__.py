@@ -15,6 +15,7 @@ _EXPORTS = {
     "PriorError": "terrain",
     "TerrainPrior": "terrain",
     "density_table_rows": "terrain",
+    "table_rows": "terrain",
     "sat_integral": "terrain",
     "sat_rect": "terrain",
     "PALETTE": "style",

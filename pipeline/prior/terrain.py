@@ -244,24 +244,19 @@ def _rect_sums(sat, u0, u1, v0, v1, out):
 
 
 @nb.njit(cache=True)
-def density_table_rows(r, total, cell_area, above, above2, density, sat, sat2):
-    """density = r / total for a band of rows, and the matching rows of the padded summed-area tables of
-    density*cell_area and density^2*cell_area (``sat``/``sat2`` are (rows, W+1), column 0 zero) under the
-    table rows ``above``/``above2`` (zeros for the first band).
-
-    One fused pass, so a 10,000 x 10,000 grid is read once and written once per output with no
-    temporaries; the tiled build calls it band by band with the previous band's last rows, which gives
-    tables bit-identical to one call over the whole grid.
-    """
-    h, w = r.shape
+def table_rows(density, cell_area, above, above2, sat, sat2):
+    """Rows of the padded summed-area tables of density*cell_area and density^2*cell_area for a float64
+    band of ``density`` rows (``sat``/``sat2`` are (rows, W+1), column 0 zero) under the table rows
+    ``above``/``above2`` (zeros for the first band): one pass, no temporaries. Bands with the previous
+    band's last rows give tables bit-identical to one call over the whole grid."""
+    h, w = density.shape
     for i in range(h):
         sat[i, 0] = 0.0
         sat2[i, 0] = 0.0
         row = 0.0
         row2 = 0.0
         for j in range(w):
-            d = r[i, j] / total
-            density[i, j] = d
+            d = density[i, j]
             row += d * cell_area
             row2 += d * d * cell_area
             if i == 0:
@@ -272,33 +267,92 @@ def density_table_rows(r, total, cell_area, above, above2, density, sat, sat2):
                 sat2[i, j + 1] = sat2[i - 1, j + 1] + row2
 
 
+@nb.njit(cache=True)
+def density_table_rows(r, total, cell_area, above, above2, density, sat, sat2):
+    """density = r / total for a band of rows, and the matching rows of the tables (:func:`table_rows`) of
+    that float64 quotient, also when ``density`` is float32 (it rounds as ``astype`` does): the tables
+    of an in-memory prior, whose float64 density is this quotient, are the same numbers."""
+    h, w = r.shape
+    d = np.empty((1, w))
+    for i in range(h):
+        for j in range(w):
+            d[0, j] = r[i, j] / total
+            density[i, j] = d[0, j]
+        if i == 0:
+            table_rows(d, cell_area, above, above2, sat[0:1], sat2[0:1])
+        else:
+            table_rows(d, cell_area, sat[i - 1], sat2[i - 1], sat[i : i + 1], sat2[i : i + 1])
+
+
 class TerrainPrior:
     """A prior density r(x) per m^2 on a grid, zero outside it, integrating to 1 over the grid.
 
     Attributes: ``grid`` (Grid), ``density`` ((H, W) per m^2), ``sat`` and ``sat2`` (padded
     summed-area tables of the per-cell mass of r and of r^2), ``model`` (dict describing how it was built).
+    Without tables (``sat`` and ``sat2`` None: a float64 density, as :meth:`from_array` makes), they are
+    made on first use, and :meth:`write` streams them strip by strip instead: a prior built to be written
+    never holds its two grid-size float64 tables.
     """
 
     def __init__(
         self,
         grid: Grid,
         density: np.ndarray,
-        sat: np.ndarray,
-        sat2: np.ndarray,
+        sat: np.ndarray | None,
+        sat2: np.ndarray | None,
         model: dict | None = None,
     ) -> None:
         if density.shape != grid.shape:
             raise PriorError(f"density shape {density.shape} does not match grid {grid.shape}")
-        expected = (grid.height + 1, grid.width + 1)
-        if sat.shape != expected or sat2.shape != expected:
-            raise PriorError(f"summed-area tables must be {expected}, got {sat.shape}, {sat2.shape}")
-        if sat.dtype != np.float64 or sat2.dtype != np.float64:  # float32 sums lose small rectangles' mass
-            raise PriorError(f"summed-area tables must be float64, got {sat.dtype}, {sat2.dtype}")
+        if (sat is None) != (sat2 is None):
+            raise PriorError("summed-area tables: give both sat and sat2, or neither (made from the density)")
+        if sat is None and density.dtype != np.float64:  # tables from a rounded density would not be the build's
+            raise PriorError(f"a prior without tables needs a float64 density, got {density.dtype}")
+        if sat is not None:
+            expected = (grid.height + 1, grid.width + 1)
+            if sat.shape != expected or sat2.shape != expected:
+                raise PriorError(f"summed-area tables must be {expected}, got {sat.shape}, {sat2.shape}")
+            if sat.dtype != np.float64 or sat2.dtype != np.float64:  # float32 sums lose small rectangles' mass
+                raise PriorError(f"summed-area tables must be float64, got {sat.dtype}, {sat2.dtype}")
         self.grid = grid
         self.density = density
-        self.sat = sat
-        self.sat2 = sat2
+        self._tables = None if sat is None else (sat, sat2)
         self.model = dict(model or {})
+
+    @property
+    def sat(self) -> np.ndarray:
+        """Padded (H+1, W+1) float64 summed-area table of the per-cell mass of r (probability)."""
+        return self._made_tables()[0]
+
+    @property
+    def sat2(self) -> np.ndarray:
+        """Padded (H+1, W+1) float64 summed-area table of the per-cell mass of r^2 (per m^2)."""
+        return self._made_tables()[1]
+
+    def _made_tables(self) -> tuple[np.ndarray, np.ndarray]:
+        if self._tables is None:
+            sat = np.empty((self.grid.height + 1, self.grid.width + 1))
+            sat2 = np.empty_like(sat)
+            sat[0], sat2[0] = 0.0, 0.0
+            table_rows(self.density, self.grid.cell_area, sat[0], sat2[0], sat[1:], sat2[1:])
+            self._tables = (sat, sat2)
+        return self._tables
+
+    def _table_strips(self, rows: int) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """(density, sat, sat2) bands of ``rows`` rows from the top (tables without the zero top row);
+        tables not made yet are made band by band into two reused buffers."""
+        h, w = self.grid.shape
+        if self._tables is not None:
+            sat, sat2 = self._tables
+            for r in range(0, h, rows):
+                yield self.density[r : r + rows], sat[r + 1 : r + 1 + rows], sat2[r + 1 : r + 1 + rows]
+            return
+        block, block2 = np.zeros((rows + 1, w + 1)), np.zeros((rows + 1, w + 1))  # row 0: the table row above
+        for r in range(0, h, rows):
+            n = min(rows, h - r)
+            table_rows(self.density[r : r + n], self.grid.cell_area, block[0], block2[0], block[1 : n + 1], block2[1 : n + 1])
+            yield self.density[r : r + n], block[1 : n + 1], block2[1 : n + 1]
+            block[0], block2[0] = block[n], block2[n]
 
     @property
     def max_density(self) -> float:
@@ -326,13 +380,8 @@ class TerrainPrior:
                 "the likelihood table makes r zero everywhere on the grid; check for structural zeros covering the region"
             )
         r = np.ascontiguousarray(r)
-        density = r if reuse else np.empty(grid.shape, dtype=np.float64)  # each cell is read before it is written
-        sat = np.empty((grid.height + 1, grid.width + 1), dtype=np.float64)
-        sat2 = np.empty_like(sat)
-        zeros = np.zeros(grid.width + 1)
-        sat[0], sat2[0] = zeros, zeros
-        density_table_rows(r, total, grid.cell_area, zeros, zeros, density, sat[1:], sat2[1:])
-        return cls(grid, density, sat, sat2, model)
+        density = np.divide(r, total, out=r if reuse else None)  # the quotient density_table_rows takes
+        return cls(grid, density, None, None, model)
 
     @classmethod
     def uniform(cls, grid: Grid) -> TerrainPrior:
@@ -342,9 +391,7 @@ class TerrainPrior:
     def write(self, path: str | Path) -> Path:
         """Write the GeoTIFF and its summed-area tables atomically (:func:`pipeline.prior.write.write_prior`);
         returns the GeoTIFF path."""
-        rows = range(0, self.grid.height, BLOCK)
-        strips = ((self.density[r : r + BLOCK], self.sat[r + 1 : r + 1 + BLOCK], self.sat2[r + 1 : r + 1 + BLOCK]) for r in rows)
-        return write_prior(path, self.grid, self.model, strips)
+        return write_prior(path, self.grid, self.model, self._table_strips(BLOCK))
 
     @classmethod
     def read(cls, path: str | Path, windowed: bool | None = None) -> TerrainPrior:

@@ -71,9 +71,25 @@ def test_all_false():
         ({"dy": np.nan}, "dy"),
         ({"max_distance": -1.0}, "max_distance"),
         ({"dtype": np.int32}, "dtype"),
+        ({"window": (1, 0, 3, 3)}, "window"),
+        ({"window": (0, -1, 2, 2)}, "window"),
     ],
 )
 def test_bad_arguments(kwargs, match):
     args = {"mask": np.zeros((3, 3), dtype=bool), "dx": 1.0, "dy": 1.0} | kwargs
     with pytest.raises(ValueError, match=match):
         distance_m(**args)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 12), st.integers(1, 12), st.floats(0.5, 30.0), st.floats(0.5, 30.0),
+       st.data())
+def test_window_is_the_same_numbers_as_a_slice_of_the_whole(seed, h, w, dx, dy, data):
+    """The padded-mask path of the distance feature: a window's distances are the whole grid's, bit for bit."""
+    mask = np.random.default_rng(seed).random((h, w)) < 0.1
+    r0, c0 = data.draw(st.integers(0, h - 1)), data.draw(st.integers(0, w - 1))
+    wh, ww = data.draw(st.integers(0, h - r0)), data.draw(st.integers(0, w - c0))
+    for cap in (None, 25.0):
+        whole = distance_m(mask, dx, dy, cap)
+        got = distance_m(mask, dx, dy, cap, window=(r0, c0, wh, ww))
+        np.testing.assert_array_equal(got, whole[r0:r0 + wh, c0:c0 + ww])

@@ -12,7 +12,7 @@ from hypothesis.extra.numpy import arrays
 from scipy import stats
 
 from pipeline.gis.grid import Grid
-from pipeline.prior.terrain import PriorError, TerrainPrior
+from pipeline.prior.terrain import PriorError, TerrainPrior, density_table_rows
 
 
 def make_grid(h: int, w: int, dx: float, dy: float) -> Grid:
@@ -239,3 +239,31 @@ def test_sampler_respects_region() -> None:
     assert p > 1e-3
     with pytest.raises(ValueError, match="cell-aligned"):
         prior.sample(10, np.random.default_rng(0), (300055.0, 6199850.0, 300120.0, 6199950.0))
+
+
+def test_tables_made_on_use_and_streamed_are_the_fused_kernels(tmp_path):
+    """A prior from from_array has no tables until used; made whole, or band by band as write() streams
+    them (600 rows: three 256-row strips), they are the numbers of density_table_rows over the whole grid."""
+    grid = make_grid(600, 9, 20.0, 15.0)
+    r = np.random.default_rng(3).random((600, 9)) ** 2
+    r[100:130] = 0.0
+    total = float(r.sum()) * grid.cell_area
+    density, sat, sat2 = np.empty_like(r), np.zeros((601, 10)), np.zeros((601, 10))
+    density_table_rows(r, total, grid.cell_area, np.zeros(10), np.zeros(10), density, sat[1:], sat2[1:])
+    streamed = TerrainPrior.from_array(r, grid)
+    assert streamed._tables is None
+    back = TerrainPrior.read(streamed.write(tmp_path / "prior.tif"))
+    assert streamed._tables is None  # writing did not make the whole tables
+    np.testing.assert_array_equal(streamed.density, density)
+    for table, expected in ((back.sat, sat), (back.sat2, sat2), (streamed.sat, sat), (streamed.sat2, sat2)):
+        np.testing.assert_array_equal(table, expected)
+    reused = r.copy()
+    assert TerrainPrior.from_array(reused, grid, reuse=True).density is reused
+
+
+def test_tables_both_or_neither():
+    grid = make_grid(3, 4, 10.0, 10.0)
+    with pytest.raises(PriorError, match="both sat and sat2"):
+        TerrainPrior(grid, np.ones((3, 4)), np.zeros((4, 5)), None)
+    with pytest.raises(PriorError, match="float64 density"):
+        TerrainPrior(grid, np.ones((3, 4), dtype=np.float32), None, None)
