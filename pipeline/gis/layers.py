@@ -241,7 +241,8 @@ def covering_window(src: rasterio.io.DatasetReader, grid: Grid) -> Window | None
 
 
 def read_raster(spec: LayerSpec, grid: Grid, categorical: bool = False) -> np.ndarray:
-    """One raster band resampled onto ``grid``: bilinear float64 with NaN no data, or (categorical)
+    """One raster band resampled onto ``grid``: bilinear float32 with NaN no data (the precision of the
+    feature GeoTIFFs; a float64 raster rounds to it), or (categorical)
     nearest int32 codes with ``NODATA_CODE`` no data."""
     if not spec.path.exists():
         raise LayerError(f"{_where(spec)}: file not found")
@@ -268,10 +269,10 @@ def read_raster(spec: LayerSpec, grid: Grid, categorical: bool = False) -> np.nd
         out = np.full(grid.shape, NODATA_CODE, dtype=np.int32)
         src_nd, dst_nd, method = NODATA_CODE, NODATA_CODE, Resampling.nearest
     else:
-        src_data = data.astype(np.float64)
+        src_data = data.astype(np.float32)
         if src_nodata is not None:
             src_data[data == src_nodata] = np.nan
-        out = np.full(grid.shape, np.nan, dtype=np.float64)
+        out = np.full(grid.shape, np.nan, dtype=np.float32)
         src_nd, dst_nd, method = np.nan, np.nan, Resampling.bilinear
     reproject(
         src_data, out, src_transform=src_transform, src_crs=src_crs, src_nodata=src_nd,

@@ -27,6 +27,12 @@ def region():
     return cfg, build_features(cfg, progress=False)
 
 
+def assert_float32_of(values: np.ndarray, exact: np.ndarray, atol: float = 0.0) -> None:
+    """Distance features are float32: the rounding of the exact distance, within half a float32 ulp."""
+    assert values.dtype == np.float32
+    np.testing.assert_allclose(values, exact, rtol=2.0**-24 * (1 + 1e-9), atol=atol)
+
+
 def layer_geoms(name: str) -> np.ndarray:
     _, _, wkb, _ = pyogrio.raw.read(REGION_TOML.parent / "region.gpkg", layer=name)
     return shapely.from_wkb(wkb)
@@ -41,7 +47,7 @@ def test_bundled_prior_is_the_normalised_product_of_hand_set_tables(region) -> N
     # independent product, written out from region.toml's tables
     slope = stack["slope"].values
     slope_r = np.select([slope < 4, slope < 8, slope < 12], [1.0, 0.7, 0.35], 0.1)
-    d = stack["road_distance"].values
+    d = stack["road_distance"].values.astype(np.float64)  # the tables evaluate in float64
     road_r = 0.9 * np.exp(-0.5 * ((d - 100.0) / 100.0) ** 2) + 0.1
     surface_r = np.array([1.0, 0.6, 0.4, 0.8])[stack["surface"].values]  # soil, sand, rock, clay
     veg = stack["vegetation"].values
@@ -83,7 +89,7 @@ def test_water_mask_holds_buffered_lakes_and_river(region) -> None:
 
 def test_road_distance_vs_brute_force(region) -> None:
     cfg, stack = region
-    d = stack["road_distance"].values
+    d = stack["road_distance"].values.astype(np.float64)  # the tables evaluate in float64
     roads = layer_geoms("roads")
     kept = [g for g, h in zip(roads, _highways(), strict=True) if h != "track"]
     xc, yc = cfg.grid.cell_centres()
@@ -95,7 +101,7 @@ def test_road_distance_vs_brute_force(region) -> None:
     rows, cols = rng.integers(0, 700, 300), rng.integers(0, 700, 300)
     ry, rx = yc[on_road], xc[on_road]
     brute = np.sqrt((xc[rows, cols, None] - rx) ** 2 + (yc[rows, cols, None] - ry) ** 2).min(axis=1)
-    np.testing.assert_allclose(d[rows, cols], brute, rtol=1e-12, atol=1e-9)
+    assert_float32_of(stack["road_distance"].values[rows, cols], brute, atol=1e-9)
 
 
 def _highways() -> np.ndarray:
@@ -209,7 +215,7 @@ def test_distance_to_any_layer_with_cap(tmp_path: Path) -> None:
     xc, yc = cfg.grid.cell_centres()
     inside = d.values == 0
     brute = np.sqrt((xc[..., None] - xc[inside]) ** 2 + (yc[..., None] - yc[inside]) ** 2).min(axis=-1)
-    np.testing.assert_allclose(d.values, np.minimum(brute, 150.0), rtol=1e-12)
+    assert_float32_of(d.values, np.minimum(brute, 150.0))
 
 
 def test_slope_from_dem_in_another_crs_is_the_plane_angle(tmp_path: Path) -> None:
@@ -347,7 +353,7 @@ def test_distance_to_line_ends_is_the_brute_force_distance_to_their_cells(tmp_pa
     r, c, _ = cfg.grid.cell_index(ends[:, 0], ends[:, 1])
     ex, ey = xc[r, c], yc[r, c]
     brute = np.min(np.hypot(xc[..., None] - ex, yc[..., None] - ey), axis=-1)
-    np.testing.assert_allclose(stack["ends"].values, brute, rtol=1e-12, atol=1e-9)
+    assert_float32_of(stack["ends"].values, brute, atol=1e-9)
     assert (stack["ends"].values >= stack["lines"].values).all()
     bad = load_config(small_region(tmp_path, {"ends": {"type": "distance", "layers": ["p"], "to": "ends"}}, p=pts))
     with pytest.raises(LayerError, match=r"\[features\.ends\] \(to = \"ends\"\).*'p'.*need lines.*Point"):
