@@ -4,8 +4,9 @@ of reports whose gated pairs were scored in bulk (see :mod:`tracker.association.
 Block layout (all arrays, positions in metres, times in seconds):
 
 * reports ``blk = (z (m,2), V (m,2,2), t (m,), log_unseen (m,), half_logdet_v (m,), conflicted (m,),
-  assign (m,), order, keys, grid, scratch (m,))``: ``order``/``keys`` sort the block's reports by grid
-  cell, ``grid`` = [x0, y0, cell, lam_v, nx, ny] (lam_v the largest report-covariance eigenvalue);
+  assign (m,), order, starts, grid, scratch (m,))``: ``order`` sorts the block's reports by grid
+  cell, those of cell c (= ix·ny + iy) are ``order[starts[c]:starts[c + 1]]``, ``grid`` = [x0, y0,
+  cell, lam_v, nx, ny] (lam_v the largest report-covariance eigenvalue);
 * pair pool ``pool = (p_h, p_score, p_mean, p_cov, p_logc, p_next, head)``: one linked list of scored
   (hypothesis, report) pairs per report, ``p_h = -1`` for a pair made stale by a later change;
 * hypotheses ``hyp = (means, covs, log_c, counts, times, dirty, dirty_list, low, is_low)`` with spare
@@ -162,24 +163,39 @@ def half_log_det(V):
     return out
 
 
+REPORT_CELLS = 16
+"""Cells of a block's report grid per report at most (at least 65,536): the cell grows past √(2γλ)
+on blocks spread far wider than their reports' covariances."""
+
+
 @njit(cache=True)
 def build_report_grid(z, V, gamma):
-    """Sort the block's reports into square cells: returns (order, keys, grid) (see module doc)."""
+    """Sort the block's reports into square cells: returns (order, starts, grid) (see module doc)."""
     m = z.shape[0]
     lam_v = 0.0
     for k in range(m):
         lam_v = max(lam_v, _lam_max(V[k, 0, 0], V[k, 0, 1], V[k, 1, 1]))
     x0 = np.min(z[:, 0]) if m else 0.0
     y0 = np.min(z[:, 1]) if m else 0.0
+    wx = np.max(z[:, 0]) - x0 if m else 0.0
+    wy = np.max(z[:, 1]) - y0 if m else 0.0
     cell = max(math.sqrt(gamma * 2.0 * lam_v), 1e-3)
-    nx = int((np.max(z[:, 0]) - x0) / cell) + 1 if m else 1
-    ny = int((np.max(z[:, 1]) - y0) / cell) + 1 if m else 1
+    max_cells = max(REPORT_CELLS * m, 65536)
+    if (wx / cell + 1.0) * (wy / cell + 1.0) > max_cells:
+        cell = max(cell, (wx + wy) / math.sqrt(max_cells) + 1e-3)
+    nx = int(wx / cell) + 1
+    ny = int(wy / cell) + 1
     keys = np.empty(m, np.int64)
     for k in range(m):
         keys[k] = int((z[k, 0] - x0) / cell) * ny + int((z[k, 1] - y0) / cell)
     order = np.argsort(keys, kind="mergesort")
+    starts = np.zeros(nx * ny + 1, np.int64)
+    for k in range(m):
+        starts[keys[k] + 1] += 1
+    for c in range(nx * ny):
+        starts[c + 1] += starts[c]
     grid = np.array([x0, y0, cell, lam_v, float(nx), float(ny)])
-    return order, keys[order], grid
+    return order, starts, grid
 
 
 @njit(cache=True)
@@ -188,7 +204,7 @@ def _gated_reports(h, after, blk, hyp, cfg, out):
     returns their number. Static: a grid query with radius √(γ(λ_max(A_h) + lam_v)), which contains
     every gated report. Constant velocity: a scan of the later reports."""
     z, V, t = blk[0], blk[1], blk[2]
-    order, keys, grid = blk[7], blk[8], blk[9]
+    order, starts, grid = blk[7], blk[8], blk[9]
     Hm, Hc, Ht = hyp[0], hyp[1], hyp[4]
     gamma, motion, q = cfg[0], cfg[5], cfg[6]
     n = 0
@@ -205,10 +221,10 @@ def _gated_reports(h, after, blk, hyp, cfg, out):
     cx1 = min(nx - 1, int(math.floor((Hm[h, 0] + radius - x0) / cell)))
     cy0 = max(0, int(math.floor((Hm[h, 1] - radius - y0) / cell)))
     cy1 = min(ny - 1, int(math.floor((Hm[h, 1] + radius - y0) / cell)))
+    if cy0 > cy1:  # off the block's rows (cx0 > cx1 leaves the loop empty)
+        return 0
     for cx in range(cx0, cx1 + 1):
-        lo = np.searchsorted(keys, cx * ny + cy0)
-        hi = np.searchsorted(keys, cx * ny + cy1, side="right")
-        for i in range(lo, hi):
+        for i in range(starts[cx * ny + cy0], starts[cx * ny + cy1 + 1]):
             k = order[i]
             if k > after and _in_gate(Hm, Hc, Ht, h, z, V, k, t, motion, q, gamma):
                 out[n] = k
@@ -425,21 +441,23 @@ def walk(start, blk, pool, hyp, istate, fstate, cfg):
 @njit(cache=True)
 def fresh_pairs(j, blk, hyp, istate, cfg):
     """(report, hypothesis) pairs in the gate between reports j.. and the hypotheses changed since the
-    last refresh."""
+    last refresh (one grid query per changed hypothesis)."""
     dirty_list = hyp[6]
     buf = blk[10]
-    total = 0
-    for i in range(istate[1]):
-        total += _gated_reports(dirty_list[i], j - 1, blk, hyp, cfg, buf)
-    rep = np.empty(total, np.int64)
-    hyp_idx = np.empty(total, np.int64)
+    cap = 2 * istate[1] + 16
+    rep = np.empty(cap, np.int64)
+    hyp_idx = np.empty(cap, np.int64)
     c = 0
     for i in range(istate[1]):
         n = _gated_reports(dirty_list[i], j - 1, blk, hyp, cfg, buf)
+        if c + n > cap:
+            cap = max(2 * cap, c + n)
+            rep = np.concatenate((rep[:c], np.empty(cap - c, np.int64)))
+            hyp_idx = np.concatenate((hyp_idx[:c], np.empty(cap - c, np.int64)))
         rep[c : c + n] = buf[:n]
         hyp_idx[c : c + n] = dirty_list[i]
         c += n
-    return rep, hyp_idx
+    return rep[:c], hyp_idx[:c]
 
 
 @njit(cache=True)
