@@ -79,6 +79,7 @@ from tracker.association.walk import (
     half_log_det,
     link_pairs,
     pair_geometry,
+    pair_geometry_parallel,
     walk,
     walk_sequential,
 )
@@ -380,7 +381,8 @@ class Tracker:
         """Scores ln[G(z; a, A+V) ∫G(b,B)r / c] (ln G for UU/UT) of pairs (block report rep, hypothesis h)
         from the current hypotheses, with the posterior state, covariance and ln c of each pair."""
         t0 = time.perf_counter()
-        log_g, post_m, post_c, pred_m, pred_c = pair_geometry(rep, h, blk, hyp, cfg)
+        geometry = pair_geometry_parallel if h.size >= SERIAL_BELOW else pair_geometry
+        log_g, post_m, post_c, pred_m, pred_c = geometry(rep, h, blk, hyp, cfg)
         self.timings_["geometry"] += time.perf_counter() - t0
         if not self.terrain_association:
             return log_g, post_m, post_c, np.full(h.size, self.log_u)

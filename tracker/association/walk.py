@@ -152,6 +152,22 @@ def pair_geometry(rep, h, blk, hyp, cfg):
     return log_g, post_m, post_c, pred_m, pred_c
 
 
+@njit(cache=True, parallel=True)
+def pair_geometry_parallel(rep, h, blk, hyp, cfg):
+    """:func:`pair_geometry` with the pairs shared among numba's threads (the same numbers: each pair is
+    its own :func:`_pair_geom`); for a block's pairs, not for a refresh's few."""
+    n = rep.shape[0]
+    D = hyp[0].shape[1]
+    log_g = np.empty(n)
+    post_m = np.empty((n, D))
+    post_c = np.empty((n, D, D))
+    pred_m = np.empty((n, 2))
+    pred_c = np.empty((n, 2, 2))
+    for i in prange(n):
+        log_g[i] = _pair_geom(h[i], rep[i], blk, hyp, cfg, post_m[i], post_c[i], pred_m[i], pred_c[i])
+    return log_g, post_m, post_c, pred_m, pred_c
+
+
 @njit(cache=True)
 def half_log_det(V):
     """½ ln det V_k of 2x2 covariances V (m, 2, 2) (m², so the result is in ln m), from the determinant's

@@ -1,5 +1,5 @@
 """The static hypotheses' grid of the walk (walk.grid_place, walk.grid_gate) and the block's report grid
-(walk.build_report_grid, walk.fresh_pairs) against brute force."""
+(walk.build_report_grid, walk.fresh_pairs) against brute force; the pairs' Kalman products on threads."""
 
 from __future__ import annotations
 
@@ -19,8 +19,10 @@ from tracker.association.walk import (
     grid_gate,
     grid_place,
     half_log_det,
+    pair_geometry,
+    pair_geometry_parallel,
 )
-from tracker.models.motion import Static
+from tracker.models.motion import ConstantVelocity, Static
 from tracker.models.sfunc import ExpS
 
 
@@ -128,3 +130,22 @@ def test_fresh_pairs_equal_brute_force(seed, n, m, spread, gamma, after):
     want = {(k, int(d)) for k, d in _brute(Hm[dirty], Hc[dirty], z, V, gamma) if k >= j}
     got = {(int(k), int(d)) for k, d in zip(rep, h, strict=True)}
     assert len(got) == rep.size and got == {(k, int(dirty[i])) for k, i in want}
+
+
+def test_pair_geometry_parallel_is_the_serial_one():
+    # Bit for bit, static and constant velocity (predicted to each report's time first).
+    rng = np.random.default_rng(11)
+    m, n, k = 300, 120, 5000
+    z = rng.uniform(0, 5000, (m, 2))
+    V = random_covs(rng, m, 2.0, 60.0)
+    blk = (z, V, rng.uniform(10.0, 20.0, m), *([None] * 8))
+    rep, h = rng.integers(0, m, k), rng.integers(0, n, k)
+    for motion, D in ((Static(), 2), (ConstantVelocity(0.5, 5.0), 4)):
+        Hm = rng.uniform(0, 5000, (n, D))
+        L = rng.normal(0, 10.0, (n, D, D))
+        Hc = L @ L.transpose(0, 2, 1) + 25.0 * np.eye(D)
+        hyp = (Hm, Hc, None, None, rng.uniform(0.0, 10.0, n), *([None] * 4))
+        m_kind, q, vel_std = motion.code
+        cfg = (41.4, True, 0.0, 0, 0.0, m_kind, q, vel_std)
+        for a, b in zip(pair_geometry(rep, h, blk, hyp, cfg), pair_geometry_parallel(rep, h, blk, hyp, cfg), strict=True):
+            assert np.array_equal(a, b)
