@@ -593,21 +593,30 @@ def _grid_query(k, z, V, gamma, Hm, Hc, hgrid, out):
     return n
 
 
+GATE_SLOTS = 8
+"""Hypotheses per report that :func:`grid_gate`'s first pass keeps (the bench stream gates 2.5 on average)."""
+
+
 @njit(cache=True, parallel=True)
 def grid_gate(z, V, gamma, Hm, Hc, hgrid):
     """Gated pairs of reports (m, 2) / (m, 2, 2) against the grid's static hypotheses, CSR by report:
     (ptr (m+1,), hypothesis per pair, in ascending order within each report). Both passes are parallel
-    over reports (the grid is only read)."""
+    over reports (the grid is only read). The first keeps up to GATE_SLOTS hypotheses per report, so
+    the second queries again only the reports that gate more."""
     m = z.shape[0]
     count = np.zeros(m + 1, np.int64)
-    none = np.empty(0, np.int64)
+    slots = np.empty(m * GATE_SLOTS, np.int64)
     for k in prange(m):
-        count[k + 1] = _grid_query(k, z, V, gamma, Hm, Hc, hgrid, none)
+        count[k + 1] = _grid_query(k, z, V, gamma, Hm, Hc, hgrid, slots[k * GATE_SLOTS : (k + 1) * GATE_SLOTS])
     ptr = np.cumsum(count)
     p_h = np.empty(ptr[m], np.int64)
     for k in prange(m):
-        n = _grid_query(k, z, V, gamma, Hm, Hc, hgrid, p_h[ptr[k] : ptr[k + 1]])
-        p_h[ptr[k] : ptr[k] + n].sort()
+        n = ptr[k + 1] - ptr[k]
+        if n <= GATE_SLOTS:
+            p_h[ptr[k] : ptr[k + 1]] = slots[k * GATE_SLOTS : k * GATE_SLOTS + n]
+        else:
+            _grid_query(k, z, V, gamma, Hm, Hc, hgrid, p_h[ptr[k] : ptr[k + 1]])
+        p_h[ptr[k] : ptr[k + 1]].sort()
     return ptr, p_h
 
 
