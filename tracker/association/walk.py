@@ -214,7 +214,7 @@ def build_report_grid(z, V, gamma):
     return order, starts, grid
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _gated_reports(h, after, blk, hyp, cfg, out):
     """Reports k > after of the block in the gate of hypothesis h (current state), into ``out``;
     returns their number. Static: a grid query with radius √(γ(λ_max(A_h) + lam_v)), which contains
@@ -347,7 +347,7 @@ def _apply(j, h, c_mean, c_cov, p, log_c, mark, blk, hyp, istate, fstate, cfg):
     assign[j] = h
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def decide(j, cand, nc, c_h, c_score, c_mean, c_cov, c_logc, check_gate, blk, hyp, istate, fstate, cfg, mark=True):
     """Decide report j among candidate pairs ``cand[:nc]`` (indices into the c_* arrays) and apply the
     estimation step; returns DONE, or WIDEN when the gate bound fails (nothing changed then). ``mark``:
