@@ -338,7 +338,7 @@ class Tracker:
         # ∫G r · 2π√det V is the prior mass near the report, G-weighted; the summed-area tables leave
         # ~1e-13 of rounding where the true value is 0, so below MASS_FLOOR it counts as no mass. The area
         # is at least one cell's: a Gaussian under a cell is integrated exactly (its value is the cell's r).
-        log_area = np.maximum(np.linalg.slogdet(V)[1], 2.0 * math.log(self.prior.grid.cell_area))
+        log_area = np.maximum(2.0 * half_log_det(V), 2.0 * math.log(self.prior.grid.cell_area))
         on = log_iz + _LOG_2PI + 0.5 * log_area > math.log(MASS_FLOOR)
         return (log_iz if self.terrain_association else np.full(z.shape[0], self.log_u)), on
 
