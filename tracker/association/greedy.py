@@ -79,6 +79,7 @@ from tracker.association.walk import (
     half_log_det,
     link_pairs,
     pair_geometry,
+    pair_geometry_parallel,
     walk,
     walk_sequential,
 )
@@ -337,7 +338,7 @@ class Tracker:
         # ∫G r · 2π√det V is the prior mass near the report, G-weighted; the summed-area tables leave
         # ~1e-13 of rounding where the true value is 0, so below MASS_FLOOR it counts as no mass. The area
         # is at least one cell's: a Gaussian under a cell is integrated exactly (its value is the cell's r).
-        log_area = np.maximum(np.linalg.slogdet(V)[1], 2.0 * math.log(self.prior.grid.cell_area))
+        log_area = np.maximum(2.0 * half_log_det(V), 2.0 * math.log(self.prior.grid.cell_area))
         on = log_iz + _LOG_2PI + 0.5 * log_area > math.log(MASS_FLOOR)
         return (log_iz if self.terrain_association else np.full(z.shape[0], self.log_u)), on
 
@@ -380,7 +381,8 @@ class Tracker:
         """Scores ln[G(z; a, A+V) ∫G(b,B)r / c] (ln G for UU/UT) of pairs (block report rep, hypothesis h)
         from the current hypotheses, with the posterior state, covariance and ln c of each pair."""
         t0 = time.perf_counter()
-        log_g, post_m, post_c, pred_m, pred_c = pair_geometry(rep, h, blk, hyp, cfg)
+        geometry = pair_geometry_parallel if h.size >= SERIAL_BELOW else pair_geometry
+        log_g, post_m, post_c, pred_m, pred_c = geometry(rep, h, blk, hyp, cfg)
         self.timings_["geometry"] += time.perf_counter() - t0
         if not self.terrain_association:
             return log_g, post_m, post_c, np.full(h.size, self.log_u)

@@ -1,4 +1,5 @@
-"""The static hypotheses' grid of the walk (walk.grid_place, walk.grid_gate) against brute force."""
+"""The static hypotheses' grid of the walk (walk.grid_place, walk.grid_gate) and the block's report grid
+(walk.build_report_grid, walk.fresh_pairs) against brute force; the pairs' Kalman products on threads."""
 
 from __future__ import annotations
 
@@ -11,7 +12,18 @@ from hypothesis import strategies as st
 
 from tests.tracker.association.helpers import random_covs
 from tracker.association.greedy import _HypothesisGrid
-from tracker.association.walk import grid_gate, grid_place, half_log_det
+from tracker.association.walk import (
+    REPORT_CELLS,
+    build_report_grid,
+    fresh_pairs,
+    grid_gate,
+    grid_place,
+    half_log_det,
+    pair_geometry,
+    pair_geometry_parallel,
+)
+from tracker.models.motion import ConstantVelocity, Static
+from tracker.models.sfunc import ExpS
 
 
 def _brute(Hm, Hc, z, V, gamma):
@@ -87,3 +99,53 @@ def test_half_log_det_within_its_rounding_bound():
         want = 0.5 * math.log(exact)
         bound = 2.0 * eps * float(abs(a * d) + abs(b * c)) / float(exact) + 4.0 * eps * max(1.0, abs(want))
         assert abs(got[k] - want) <= bound
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 10_000), n=st.integers(1, 200), m=st.integers(1, 300), spread=st.sampled_from([0.01, 1.0, 100.0]),
+       gamma=st.sampled_from([3.0, 41.4, 400.0]), after=st.integers(0, 299))
+def test_fresh_pairs_equal_brute_force(seed, n, m, spread, gamma, after):
+    # Changed hypotheses inside and far outside the block's extent (off its rows and columns); blocks
+    # spread up to 10^4 times their reports' gate radius, where the report grid's cell is enlarged.
+    rng = np.random.default_rng(seed)
+    z = rng.uniform(0.0, 1000.0 * spread, (m, 2))
+    V = random_covs(rng, m, 0.5, 20.0)
+    Hm = rng.uniform(-500.0 * spread, 1500.0 * spread, (n, 2))
+    Hc = random_covs(rng, n, 1.0, 200.0)
+    order, starts, grid = build_report_grid(z, V, gamma)
+    nx, ny = int(grid[4]), int(grid[5])
+    assert starts.size == nx * ny + 1 and nx * ny <= max(REPORT_CELLS * m, 65536)
+    keys = np.floor((z[order] - grid[:2]) / grid[2]).astype(np.int64) @ np.array([ny, 1])
+    assert np.all(np.diff(keys) >= 0) and np.array_equal(np.searchsorted(keys, np.arange(nx * ny + 1)), starts)
+    dirty = rng.choice(n, max(1, n // 2), replace=False)
+    blk = (z, V, np.zeros(m), np.zeros(m), half_log_det(V), np.zeros(m, bool), np.full(m, -1), order, starts, grid,
+           np.zeros(m, np.int64))
+    hyp = (Hm, Hc, np.zeros(n), np.ones(n, np.int64), np.zeros(n), np.zeros(n, bool), dirty, np.zeros(1, np.int64),
+           np.zeros(n, bool))
+    istate = np.array([n, dirty.size, 0, 0, 0], np.int64)
+    s_kind, s_param = ExpS(-1.7).code
+    m_kind, q, vel_std = Static().code
+    j = min(after, m - 1)
+    rep, h = fresh_pairs(j, blk, hyp, istate, (gamma, True, 0.0, s_kind, s_param, m_kind, q, vel_std))
+    want = {(k, int(d)) for k, d in _brute(Hm[dirty], Hc[dirty], z, V, gamma) if k >= j}
+    got = {(int(k), int(d)) for k, d in zip(rep, h, strict=True)}
+    assert len(got) == rep.size and got == {(k, int(dirty[i])) for k, i in want}
+
+
+def test_pair_geometry_parallel_is_the_serial_one():
+    # Bit for bit, static and constant velocity (predicted to each report's time first).
+    rng = np.random.default_rng(11)
+    m, n, k = 300, 120, 5000
+    z = rng.uniform(0, 5000, (m, 2))
+    V = random_covs(rng, m, 2.0, 60.0)
+    blk = (z, V, rng.uniform(10.0, 20.0, m), *([None] * 8))
+    rep, h = rng.integers(0, m, k), rng.integers(0, n, k)
+    for motion, D in ((Static(), 2), (ConstantVelocity(0.5, 5.0), 4)):
+        Hm = rng.uniform(0, 5000, (n, D))
+        L = rng.normal(0, 10.0, (n, D, D))
+        Hc = L @ L.transpose(0, 2, 1) + 25.0 * np.eye(D)
+        hyp = (Hm, Hc, None, None, rng.uniform(0.0, 10.0, n), *([None] * 4))
+        m_kind, q, vel_std = motion.code
+        cfg = (41.4, True, 0.0, 0, 0.0, m_kind, q, vel_std)
+        for a, b in zip(pair_geometry(rep, h, blk, hyp, cfg), pair_geometry_parallel(rep, h, blk, hyp, cfg), strict=True):
+            assert np.array_equal(a, b)
