@@ -11,7 +11,7 @@ import numpy as np
 import pandas as pd
 import pytest
 from affine import Affine
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from pipeline.gis.grid import Grid
@@ -22,6 +22,7 @@ from tracker.study.simulate import AirborneSensor
 
 
 @given(scale=st.floats(0.05, 20.0), seed=st.integers(0, 1000))
+@example(scale=2.5, seed=500)
 @settings(max_examples=25, deadline=None)
 def test_scaled_sensor_scales_covariances_by_the_square(scale: float, seed: int) -> None:
     rng = np.random.default_rng(seed)
@@ -29,7 +30,11 @@ def test_scaled_sensor_scales_covariances_by_the_square(scale: float, seed: int)
     platform = rng.uniform(-3e4, 3e4, (20, 2))
     targets = platform + rng.uniform(1e3, 5e4, (20, 1)) * np.stack([np.cos(a := rng.uniform(0, 6.3, 20)), np.sin(a)], 1)
     got = scaled_sensor(sensor, scale).covariances(platform, targets)
-    np.testing.assert_allclose(got, scale**2 * sensor.covariances(platform, targets), rtol=1e-12)
+    expected = scale**2 * sensor.covariances(platform, targets)
+    # relative to each matrix's largest entry: an off-diagonal entry is a difference of two terms that
+    # can cancel, so its own relative error is unbounded (scale 2.5, seed 500: 2.3e-12 of itself)
+    err, size = np.abs(got - expected).max(axis=(1, 2)), np.abs(expected).max(axis=(1, 2))
+    assert (err <= 1e-12 * size).all(), (err / size).max()
     assert scaled_sensor(sensor, scale).altitude_m == sensor.altitude_m
 
 
