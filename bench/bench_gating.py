@@ -18,7 +18,7 @@ from scipy.spatial import cKDTree
 from sklearn.neighbors import BallTree
 
 from bench.timing import best_time
-from tracker.gating.calibrate import calibrate
+from tracker.gating.calibrate import calibrate, moving_scene, random_covs
 from tracker.gating.costmodel import CostConstants
 from tracker.gating.exact import lambda_max_bound
 from tracker.gating.gate import gate, gate_threshold
@@ -30,40 +30,12 @@ GAMMA = gate_threshold(0.99, 2)
 MOVING_INNER = 5
 
 
-def _covs(rng: np.random.Generator, n: int, lo: float, hi: float) -> np.ndarray:
-    th = rng.uniform(0, np.pi, n)
-    c, s = np.cos(th), np.sin(th)
-    rot = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], 1)
-    ev = rng.uniform(lo, hi, (n, 2)) ** 2
-    return np.einsum("nij,nj,nkj->nik", rot, ev, rot)
-
-
 def static_scene(n: int, seed: int = 0):
     """n tracks and n reports, uniform at 1 per km^2 (metres), sigma 10-100 m."""
     rng = np.random.default_rng(seed)
     side = 1000.0 * np.sqrt(n)
-    return (rng.uniform(0, side, (n, 2)), _covs(rng, n, 10, 100),
-            rng.uniform(0, side, (n, 2)), _covs(rng, n, 10, 100))
-
-
-def moving_scene(n: int, scan: float = 10.0, vmax: float = 300.0, seed: int = 0,
-                 per_km2: float = 1.0):
-    """CV tracks at t=0 (speed uniform 0..vmax m/s), one report per track at a uniform time in
-    [0, scan] s drawn from its true position plus noise. Returns the gate() arguments."""
-    rng = np.random.default_rng(seed)
-    side = 1000.0 * np.sqrt(n / per_km2)
-    pos = rng.uniform(0, side, (n, 2))
-    speed, heading = rng.uniform(0, vmax, n), rng.uniform(0, 2 * np.pi, n)
-    vel = np.stack([speed * np.cos(heading), speed * np.sin(heading)], 1)
-    tcov = np.zeros((n, 4, 4))
-    tcov[:, :2, :2] = _covs(rng, n, 10, 100)
-    tcov[:, 2:, 2:] = _covs(rng, n, 1, 10)
-    times = rng.uniform(0, scan, n)
-    src = rng.permutation(n)
-    rcov = _covs(rng, n, 10, 100)
-    noise = np.einsum("nij,nj->ni", np.linalg.cholesky(rcov), rng.normal(size=(n, 2)))
-    rpos = pos[src] + times[:, None] * vel[src] + noise
-    return np.hstack([pos, vel]), tcov, rpos, rcov, times
+    return (rng.uniform(0, side, (n, 2)), random_covs(rng, n, 10, 100),
+            rng.uniform(0, side, (n, 2)), random_covs(rng, n, 10, 100))
 
 
 def _exact_d2(tm, tc, rm, rc, i, j):

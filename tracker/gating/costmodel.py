@@ -64,10 +64,10 @@ class CostConstants:
             tmp.write_text(json.dumps(asdict(self), indent=1) + "\n", encoding="utf-8")
 
 
-DEFAULT_CONSTANTS = CostConstants(b_tracks=1.40e-7, b_reports=1.48e-7, r_tracks=4.70e-7,
-                                  r_reports=4.10e-7, c_c=6.8e-9)
+DEFAULT_CONSTANTS = CostConstants(b_tracks=1.82e-7, b_reports=1.63e-7, r_tracks=6.31e-7,
+                                  r_reports=5.46e-7, c_c=2.70e-8)
 """Measured by :func:`tracker.gating.calibrate.calibrate` on the development machine (2 cores,
-2 numba threads, numba 0.68.1; mean of two quiet runs, 2026-12-03). Only the choice of M_D and orientation depends on them, never the
+2 numba threads, numba 0.68.1; quiet run of 2026-12-03, C_c within 1.5 % over three runs). Only the choice of M_D and orientation depends on them, never the
 gated pairs; a machine whose costs differ a lot gates faster with its own (``terrain-track calibrate``)."""
 
 
