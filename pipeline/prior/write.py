@@ -19,6 +19,7 @@ import hashlib
 import json
 import uuid
 from collections.abc import Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -99,6 +100,12 @@ def sat_paths(path: str | Path) -> tuple[Path, Path]:
     return p.with_suffix(".sat.npy"), p.with_suffix(".sat2.npy")
 
 
+def _write_and_hash(f_out, digest, table: np.ndarray) -> None:
+    data = memoryview(np.ascontiguousarray(table, dtype=np.float64)).cast("B")
+    f_out.write(data)
+    digest.update(data)
+
+
 def write_prior(
     path: str | Path,
     grid: Grid,
@@ -127,17 +134,20 @@ def write_prior(
                 f_out.write(zero)
                 digest.update(zero)
             r0 = 0
-            for density, sat, sat2 in strips:
-                n = density.shape[0]
-                if sat.shape != (n, w + 1) or sat2.shape != (n, w + 1):
-                    raise ValueError(f"table strips must be ({n}, {w + 1}), got {sat.shape}, {sat2.shape}")
-                dst.write(density.astype(np.float32, copy=False), 1, window=Window(0, r0, w, n))
-                sample.append(np.array(density[(-r0) % step :: step, ::step], dtype=np.float32))  # a copy: buffers are reused
-                for (f_out, digest), table in zip(outs, (sat, sat2), strict=True):
-                    data = memoryview(np.ascontiguousarray(table, dtype=np.float64)).cast("B")
-                    f_out.write(data)
-                    digest.update(data)
-                r0 += n
+            # each table's write and digest on a thread of its own beside the GeoTIFF's strip (file
+            # writes, hashlib and GDAL release the GIL); done before the next strip reuses the buffers
+            with ThreadPoolExecutor(max_workers=2) as pool:
+                for density, sat, sat2 in strips:
+                    n = density.shape[0]
+                    if sat.shape != (n, w + 1) or sat2.shape != (n, w + 1):
+                        raise ValueError(f"table strips must be ({n}, {w + 1}), got {sat.shape}, {sat2.shape}")
+                    tables = [pool.submit(_write_and_hash, f_out, digest, table)
+                              for (f_out, digest), table in zip(outs, (sat, sat2), strict=True)]
+                    dst.write(density.astype(np.float32, copy=False), 1, window=Window(0, r0, w, n))
+                    sample.append(np.array(density[(-r0) % step :: step, ::step], dtype=np.float32))  # a copy: buffers are reused
+                    for done in tables:
+                        done.result()
+                    r0 += n
             if r0 != h:
                 raise ValueError(f"strips cover {r0} rows of a {h}-row grid")
             dst.update_tags(**prior_tags(model), **build_tags(uuid.uuid4().hex, (d.hexdigest() for d in hashes)))
