@@ -136,18 +136,19 @@ def _pair_geom(h, k, blk, hyp, cfg, out_m, out_c, out_pm, out_pc):
     return log_g
 
 
+@njit(cache=True, inline="always")
+def _pair_outputs(n, D):
+    """ln G (n,), posterior means (n, D) and covariances (n, D, D), predicted position means (n, 2) and
+    covariances (n, 2, 2) of n pairs, to be filled."""
+    return np.empty(n), np.empty((n, D)), np.empty((n, D, D)), np.empty((n, 2)), np.empty((n, 2, 2))
+
+
 @njit(cache=True)
 def pair_geometry(rep, h, blk, hyp, cfg):
     """Vectorised :func:`_pair_geom` over pairs (report rep[i], hypothesis h[i]): returns
     (ln G, posterior means, posterior covariances, predicted position means, predicted position covs)."""
-    n = rep.shape[0]
-    D = hyp[0].shape[1]
-    log_g = np.empty(n)
-    post_m = np.empty((n, D))
-    post_c = np.empty((n, D, D))
-    pred_m = np.empty((n, 2))
-    pred_c = np.empty((n, 2, 2))
-    for i in range(n):
+    log_g, post_m, post_c, pred_m, pred_c = _pair_outputs(rep.shape[0], hyp[0].shape[1])
+    for i in range(rep.shape[0]):
         log_g[i] = _pair_geom(h[i], rep[i], blk, hyp, cfg, post_m[i], post_c[i], pred_m[i], pred_c[i])
     return log_g, post_m, post_c, pred_m, pred_c
 
@@ -156,14 +157,8 @@ def pair_geometry(rep, h, blk, hyp, cfg):
 def pair_geometry_parallel(rep, h, blk, hyp, cfg):
     """:func:`pair_geometry` with the pairs shared among numba's threads (the same numbers: each pair is
     its own :func:`_pair_geom`); for a block's pairs, not for a refresh's few."""
-    n = rep.shape[0]
-    D = hyp[0].shape[1]
-    log_g = np.empty(n)
-    post_m = np.empty((n, D))
-    post_c = np.empty((n, D, D))
-    pred_m = np.empty((n, 2))
-    pred_c = np.empty((n, 2, 2))
-    for i in prange(n):
+    log_g, post_m, post_c, pred_m, pred_c = _pair_outputs(rep.shape[0], hyp[0].shape[1])
+    for i in prange(rep.shape[0]):
         log_g[i] = _pair_geom(h[i], rep[i], blk, hyp, cfg, post_m[i], post_c[i], pred_m[i], pred_c[i])
     return log_g, post_m, post_c, pred_m, pred_c
 
