@@ -199,12 +199,17 @@ def build_report_grid(z, V, gamma):
     keys = np.empty(m, np.int64)
     for k in range(m):
         keys[k] = int((z[k, 0] - x0) / cell) * ny + int((z[k, 1] - y0) / cell)
-    order = np.argsort(keys, kind="mergesort")
     starts = np.zeros(nx * ny + 1, np.int64)
     for k in range(m):
         starts[keys[k] + 1] += 1
     for c in range(nx * ny):
         starts[c + 1] += starts[c]
+    # the counts' stable scatter: the order a stable argsort of the keys gives, without the sort
+    fill = starts[:-1].copy()
+    order = np.empty(m, np.int64)
+    for k in range(m):
+        order[fill[keys[k]]] = k
+        fill[keys[k]] += 1
     grid = np.array([x0, y0, cell, lam_v, float(nx), float(ny)])
     return order, starts, grid
 
