@@ -4,7 +4,8 @@ Felzenszwalb & Huttenlocher's separable algorithm (Theory of Computing 8, 2012):
 each column finds the row offset of the nearest target in that column, then a pass along each
 row takes the lower envelope of parabolas ``(dx*(c - q))^2 + (dy*g[q])^2``. Both passes are
 linear in the number of cells and run in parallel with numba; the result is exact (not the
-paper's two-pass chamfer approximation) and needs one int32 work array beside the output.
+paper's two-pass chamfer approximation) and needs one int32 work array beside the output (uint16
+under a cap of fewer than 65,535 rows).
 """
 
 from __future__ import annotations
@@ -13,15 +14,18 @@ import numba as nb
 import numpy as np
 
 _NONE = np.iinfo(np.int32).max
-"""Column offset meaning "no target in this column"."""
+"""Column offset meaning "no target in this column" in the int32 work array."""
+_NONE16 = np.iinfo(np.uint16).max
+"""The same in the uint16 work array of a capped transform, whose offsets beyond the cap mean "none" too."""
 
 _COL_BLOCK = 256
 """Columns per parallel task in the column pass: rows are walked in order, so memory stays sequential."""
 
 
 @nb.njit(cache=True, parallel=True)
-def _column_offsets(mask: np.ndarray, g: np.ndarray) -> None:
-    """g[r, c] = |r - r*| for the nearest target row r* in column c, or _NONE when the column has none."""
+def _column_offsets(mask: np.ndarray, g: np.ndarray, limit: int, none: int) -> None:
+    """g[r, c] = |r - r*| for the nearest target row r* in column c, or ``none`` when the column has
+    none within ``limit`` rows."""
     h, w = mask.shape
     n_blocks = (w + _COL_BLOCK - 1) // _COL_BLOCK
     for b in nb.prange(n_blocks):
@@ -32,20 +36,20 @@ def _column_offsets(mask: np.ndarray, g: np.ndarray) -> None:
             for c in range(c0, c1):
                 if mask[r, c]:
                     last[c - c0] = r
-                g[r, c] = _NONE if last[c - c0] < 0 else r - last[c - c0]
+                g[r, c] = none if last[c - c0] < 0 or r - last[c - c0] > limit else r - last[c - c0]
         last[:] = -1
         for r in range(h - 1, -1, -1):
             for c in range(c0, c1):
                 if mask[r, c]:
                     last[c - c0] = r
-                if last[c - c0] >= 0 and last[c - c0] - r < g[r, c]:
+                if last[c - c0] >= 0 and last[c - c0] - r <= limit and last[c - c0] - r < g[r, c]:
                     g[r, c] = last[c - c0] - r
 
 
 @nb.njit(cache=True, parallel=True)
-def _row_envelopes(g: np.ndarray, dx: float, dy: float, cap: float, r0: int, c0: int, out: np.ndarray) -> None:
+def _row_envelopes(g: np.ndarray, none: int, dx: float, dy: float, cap: float, r0: int, c0: int, out: np.ndarray) -> None:
     """out[r, c] = min_q sqrt((dx*(c0+c-q))^2 + (dy*g[r0+r,q])^2), capped at ``cap`` (inf: no cap): the
-    window of ``out``'s shape at row r0, column c0 of the distances, every column q of g a candidate."""
+    window of ``out``'s shape at row r0, column c0 of the distances, every column q of g not ``none`` a candidate."""
     w = g.shape[1]
     for r in nb.prange(out.shape[0]):
         gr = g[r0 + r]
@@ -54,7 +58,7 @@ def _row_envelopes(g: np.ndarray, dx: float, dy: float, cap: float, r0: int, c0:
         z = np.empty(w + 1, dtype=np.float64)  # envelope breakpoints, metres
         k = -1
         for q in range(w):
-            if gr[q] == _NONE:
+            if gr[q] == none:
                 continue
             f[q] = (dy * gr[q]) ** 2
             pq = dx * q
@@ -118,7 +122,14 @@ def distance_m(
     out = np.empty((h, w), dtype=dtype)
     if out.size == 0 or mask.size == 0:
         return out
-    g = np.empty(mask.shape, dtype=np.int32)
-    _column_offsets(np.ascontiguousarray(mask), g)
-    _row_envelopes(g, float(dx), float(dy), cap, r0, c0, out)
+    # A column whose nearest target is more than cap/dy rows away is at least the cap from the cell, so
+    # it is dropped like a column without targets: under a cap of fewer than 65,535 rows the offsets fit
+    # uint16, half the work array (the result is the uncapped one capped, bit for bit: tested).
+    rows = cap / dy
+    if rows < _NONE16 - 1:
+        g, limit, none = np.empty(mask.shape, dtype=np.uint16), int(np.ceil(rows)), _NONE16
+    else:
+        g, limit, none = np.empty(mask.shape, dtype=np.int32), _NONE - 1, _NONE
+    _column_offsets(np.ascontiguousarray(mask), g, limit, none)
+    _row_envelopes(g, none, float(dx), float(dy), cap, r0, c0, out)
     return out

@@ -47,7 +47,7 @@ def mask(geoms: np.ndarray, grid: Grid, buffer_m: float = 0.0, all_touched: bool
         all_touched=all_touched,
         dtype="uint8",
     )
-    return burned.astype(bool)
+    return burned.view(bool)  # 0/1 bytes are valid booleans: no second grid-size array
 
 
 def categories(geoms: np.ndarray, codes: np.ndarray, grid: Grid, fill: int = NODATA_CODE) -> np.ndarray:

@@ -39,6 +39,17 @@ def test_cap(mask, dx, dy, cap):
     np.testing.assert_allclose(distance_m(mask, dx, dy, max_distance=cap), expected, rtol=1e-12, atol=1e-9)
 
 
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**31), shape=st.tuples(st.integers(1, 120), st.integers(1, 120)),
+       density=st.sampled_from([0.001, 0.01, 0.1]), dx=cell, dy=cell, cap_rows=st.floats(0.0, 40.0))
+def test_capped_transform_is_the_uncapped_one_capped_bit_for_bit(seed, shape, density, dx, dy, cap_rows):
+    """Under a cap the work array is uint16 and drops columns whose targets lie beyond it: the
+    distances are the uncapped transform's (int32 work array, every column) capped, to the bit."""
+    mask = np.random.default_rng(seed).random(shape) < density
+    cap = cap_rows * dy
+    np.testing.assert_array_equal(distance_m(mask, dx, dy, max_distance=cap), np.minimum(distance_m(mask, dx, dy), cap))
+
+
 def test_sparse_random_grids_float32():
     rng = np.random.default_rng(7)
     for _ in range(20):

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import rasterio
 from affine import Affine
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from pipeline.features.slope import slope_classes, slope_deg
@@ -110,14 +110,19 @@ def test_bad_input(dem, dx, match):
 @given(
     values=st.lists(st.one_of(st.floats(0, 90), st.just(float("nan"))), min_size=1, max_size=40),
     breaks=st.lists(st.floats(0.1, 89.0), min_size=1, max_size=5, unique=True).map(sorted),
+    dtype=st.sampled_from([np.float64, np.float32]),
 )
-def test_slope_classes_definition(values, breaks):
-    got = slope_classes(np.array(values).reshape(1, -1), breaks)
-    for v, code in zip(values, got[0], strict=True):
+@example(values=[0.1, 0.09999999], breaks=[0.1], dtype=np.float32)  # float32(0.1) lies above the float64 break
+def test_slope_classes_definition(values, breaks, dtype):
+    """Class = the number of breaks at or above which the slope lies, a float32 slope compared as the
+    float64 it holds (a break between a float32 and its float64 neighbours counts exactly)."""
+    values = np.array(values, dtype=dtype)
+    got = slope_classes(values.reshape(2, -1) if values.size % 2 == 0 else values.reshape(1, -1), breaks)
+    for v, code in zip(values, got.ravel(), strict=True):
         if np.isnan(v):
             assert code == NODATA_CODE
         else:
-            assert code == sum(v >= b for b in breaks)
+            assert code == sum(float(v) >= b for b in breaks)
 
 
 @pytest.mark.parametrize("breaks", [[], [10, 5], [1, np.nan]])

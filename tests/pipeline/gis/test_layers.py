@@ -9,6 +9,8 @@ import numpy as np
 import pytest
 import shapely
 from affine import Affine
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 from pyproj import Transformer
 
 from pipeline.gis.grid import NODATA_CODE, Grid
@@ -232,6 +234,38 @@ def test_categorical_raster_nodata_code(tmp_path: Path) -> None:
     codes = read_raster(spec(_lonlat_raster(tmp_path, left_missing, np.uint8, nodata=0), kind="raster"), GRID, categorical=True)
     lon, _ = TO_LONLAT.transform(*GRID.cell_centres())
     assert (codes[lon < 20.999] == NODATA_CODE).all() and (codes[lon > 21.001] == 3).all()
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(seed=st.integers(0, 2**31), src_res=st.sampled_from([30.0, 40.0, 90.0]), holes=st.booleans(),
+       categorical=st.booleans(), lonlat=st.booleans())
+def test_raster_read_is_gdals_masked_warp(tmp_path: Path, seed, src_res, holes, categorical, lonlat) -> None:
+    """read_raster equals GDAL's warp with no-data masks bit for bit, whether the source has no-data
+    cells (the masked warp itself) or none (the unmasked warp, which must give the same numbers and
+    leave the cells it does not reach as no data); rasters offset to cover the grid partly."""
+    from rasterio.warp import Resampling, reproject
+
+    rng = np.random.default_rng(seed)
+    h, w = rng.integers(20, 90, 2)
+    # the raster's north-west corner anywhere over the grid, so it covers part of it
+    x0, y1 = rng.uniform(495_000.0, 505_000.0) - w * src_res / 2, rng.uniform(6_232_000.0, 6_240_000.0) + h * src_res / 2
+    crs = "EPSG:32733" if lonlat else "EPSG:32734"  # the neighbouring zone: a real reprojection
+    if lonlat:
+        x0, y1 = Transformer.from_crs("EPSG:32734", crs, always_xy=True).transform(x0, y1)
+    values = (rng.integers(1, 9, (h, w)) if categorical else rng.normal(300.0, 40.0, (h, w))).astype(np.int16 if categorical else np.float32)
+    nodata = -1 if categorical else -9999.0
+    if holes:
+        values[rng.random((h, w)) < 0.1] = nodata
+    path = write_raster(tmp_path / f"r{seed}.tif", values, Affine(src_res, 0, x0, 0, -src_res, y1), crs, nodata)
+    got = read_raster(spec(path, kind="raster"), GRID, categorical=categorical)
+    fill, dtype = (NODATA_CODE, np.int32) if categorical else (np.nan, np.float32)
+    src = np.where(values == nodata, fill, values).astype(dtype)
+    expected = np.full(GRID.shape, fill, dtype=dtype)
+    reproject(src, expected, src_transform=Affine(src_res, 0, x0, 0, -src_res, y1), src_crs=crs, src_nodata=fill,
+              dst_transform=GRID.transform, dst_crs=GRID.crs, dst_nodata=fill,
+              resampling=Resampling.nearest if categorical else Resampling.bilinear)
+    np.testing.assert_array_equal(got, expected)
+    assert (got != fill).any() if categorical else np.isfinite(got).any()
 
 
 def test_all_nodata_dem_is_an_error(tmp_path: Path) -> None:
