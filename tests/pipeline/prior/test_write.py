@@ -30,6 +30,36 @@ def test_tables_are_the_bytes_np_save_writes(tmp_path):
         assert src.profile["compress"] == "deflate" and src.profile["blockxsize"] == 256
 
 
+@pytest.mark.parametrize("direct", [True, False])
+@pytest.mark.parametrize("shape", [(1, 1), (3, 511), (40, 205), (64, 64)])
+def test_table_file_writes_what_np_save_writes(tmp_path, monkeypatch, direct, shape):
+    """TableFile's bytes and digest, written in uneven pieces across direct-I/O chunks (shrunk to 8 KiB)
+    or through the page cache (O_DIRECT refused), are np.save's file and the SHA-1 of its data."""
+    import hashlib
+    import os
+
+    import pipeline.prior.write as write
+
+    monkeypatch.setattr(write, "DIRECT_CHUNK", 8192)
+    if not direct:
+        real_open = os.open
+        def no_direct(path, flags, *args):
+            if flags & getattr(os, "O_DIRECT", 0):
+                raise OSError(22, "Invalid argument")
+            return real_open(path, flags, *args)
+        monkeypatch.setattr(os, "open", no_direct)
+    table = np.random.default_rng(shape[1]).random(shape)
+    out = write.TableFile(tmp_path / "t.npy", write._npy_header(shape))
+    assert (out._buffer is not None) == (direct and hasattr(os, "O_DIRECT"))
+    for r0 in range(0, shape[0], 3):
+        out.write(table[r0 : r0 + 3])
+    out.close()
+    np.save(tmp_path / "ref.npy", table)
+    data = (tmp_path / "ref.npy").read_bytes()
+    assert (tmp_path / "t.npy").read_bytes() == data
+    assert out.digest.hexdigest() == hashlib.sha1(table.tobytes()).hexdigest()
+
+
 @pytest.mark.parametrize("rows", [1, 7, 300])
 def test_cog_from_uneven_strips_reads_back_equal(tmp_path, rows):
     prior = _prior()
