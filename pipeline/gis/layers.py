@@ -250,10 +250,10 @@ def _all_nodata(values: np.ndarray, nodata: float) -> bool:
     return True
 
 
-def read_raster(spec: LayerSpec, grid: Grid, categorical: bool = False) -> np.ndarray:
+def read_raster(spec: LayerSpec, grid: Grid, categorical: bool = False, warn_empty: bool = True) -> np.ndarray:
     """One raster band resampled onto ``grid``: bilinear float32 with NaN no data (the precision of the
     feature GeoTIFFs; a float64 raster rounds to it), or (categorical)
-    nearest int32 codes with ``NODATA_CODE`` no data."""
+    nearest int32 codes with ``NODATA_CODE`` no data. A LayerWarning when no cell gets data (``warn_empty``)."""
     if not spec.path.exists():
         raise LayerError(f"{_where(spec)}: file not found")
     try:
@@ -295,7 +295,7 @@ def read_raster(spec: LayerSpec, grid: Grid, categorical: bool = False) -> np.nd
         num_threads=os.cpu_count() or 1,  # GDAL warps chunks independently: the same numbers on any count
         **masks,
     )
-    if _all_nodata(out, nodata):
+    if warn_empty and _all_nodata(out, nodata):
         warnings.warn(f"{_where(spec)}: no data on the grid {grid.bounds} ({grid.crs.to_string()})",
                       LayerWarning, stacklevel=2)
     return out
@@ -303,9 +303,7 @@ def read_raster(spec: LayerSpec, grid: Grid, categorical: bool = False) -> np.nd
 
 def read_dem(spec: LayerSpec, grid: Grid) -> np.ndarray:
     """Elevation in metres on ``grid`` (NaN no data); a DEM with no data on the grid is an error."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", LayerWarning)
-        dem = read_raster(spec, grid)
+    dem = read_raster(spec, grid, warn_empty=False)  # an error here, not a warning
     if _all_nodata(dem, np.nan):
         raise LayerError(f"{_where(spec)}: the DEM has no data on the grid (all nodata or off the grid {grid.bounds})")
     return dem
