@@ -6,12 +6,20 @@ import json
 from dataclasses import dataclass, field
 from typing import Literal
 
+import numba as nb
 import numpy as np
 
 from pipeline.gis.grid import NODATA_CODE, Grid
 
 _DENSE_CODE_RANGE = 1 << 20
 """Code ranges narrower than this are handled with dense look-up tables instead of sorting."""
+
+
+@nb.njit(cache=True)
+def _mark(codes: np.ndarray, lo: int, seen: np.ndarray) -> None:
+    """seen[c - lo] = True for every code c (all within lo .. lo + len(seen) - 1)."""
+    for c in codes:
+        seen[c - lo] = True
 
 
 @dataclass(frozen=True)
@@ -47,9 +55,10 @@ class Feature:
             return np.empty(0, dtype=self.values.dtype)
         lo, hi = int(self.values.min()), int(self.values.max())
         if hi - lo < _DENSE_CODE_RANGE:
-            # A count over the code range is linear time; np.unique sorts all cells.
-            counts = np.bincount((self.values.ravel() - lo).astype(np.intp), minlength=hi - lo + 1)
-            present = np.flatnonzero(counts) + lo
+            # A pass marking the code range is linear time; np.unique sorts all cells.
+            seen = np.zeros(hi - lo + 1, dtype=np.bool_)
+            _mark(self.values.reshape(-1), lo, seen)
+            present = np.flatnonzero(seen) + lo
         else:
             present = np.unique(self.values)
         return present[present != NODATA_CODE]

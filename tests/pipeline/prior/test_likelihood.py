@@ -15,6 +15,7 @@ from pipeline.prior.likelihood import (
     LikelihoodError,
     LikelihoodModel,
     RoadDistanceLikelihood,
+    road_likelihood,
 )
 
 TABLE = {"a": 1.0, "b": 0.5, "c": 0.0, "d": 2.0}
@@ -62,6 +63,40 @@ def test_road_form_closed_form(d: float, rmd: float, mv: float) -> None:
     expected = (1 - mv) * np.exp(-(((d - rmd) / rmd) ** 2) / 2) + mv
     assert got == pytest.approx(expected, rel=1e-12)
     assert mv - 1e-12 <= got <= 1 + 1e-12
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), rmd=st.floats(1, 1000), mv=st.floats(1e-3, 1.0),
+       dtype=st.sampled_from([np.float32, np.float64]))
+def test_road_form_is_the_formula_to_the_bit(seed: int, rmd: float, mv: float, dtype) -> None:
+    """The in-place evaluation performs the formula's operations in its order: the same bits as
+    (1 - mv)·exp(-0.5·z·z) + mv with z = (d - rmd)/rmd in float64, and NaN distances get nodata."""
+    d = np.random.default_rng(seed).uniform(0, 3000, (9, 11)).astype(dtype)
+    d[0, :3] = np.nan
+    z = (d.astype(np.float64) - rmd) / rmd
+    expected = (1.0 - mv) * np.exp(-0.5 * z * z) + mv
+    np.testing.assert_array_equal(road_likelihood(d, rmd, mv), expected)
+    expected[np.isnan(d)] = 0.4
+    np.testing.assert_array_equal(RoadDistanceLikelihood(rmd, mv, nodata=0.4)(Feature("road", d, "continuous", units="m")), expected)
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), order=st.permutations(["water", "road_distance", "slope"]))
+def test_model_product_is_the_product_of_its_terms_to_the_bit(seed: int, order: list[str]) -> None:
+    """r = 1 · r_1 · r_2 · …, multiplied in the model's order (the first factor is taken as it is)."""
+    rng = np.random.default_rng(seed)
+    grid = Grid.from_bounds((0, 0, 140, 100), 20, "EPSG:32734")
+    stack = FeatureStack(grid)
+    stack.add(Feature("water", rng.integers(-1, 2, (5, 7)).astype(np.int16), "categorical", labels={0: "dry", 1: "water"}))
+    stack.add(Feature("road_distance", rng.uniform(0, 500, (5, 7)), "continuous", units="m"))
+    stack.add(Feature("slope", rng.uniform(0, 30, (5, 7)).astype(np.float32), "continuous", units="deg"))
+    terms = {"water": CategoricalLikelihood({"dry": 1.0, "water": 0.3}, nodata=0.9),
+             "road_distance": RoadDistanceLikelihood(60.0, 0.1), "slope": BinnedLikelihood([0, 5, 15], [1.0, 0.7, 0.2])}
+    model = LikelihoodModel({name: terms[name] for name in order})
+    expected = np.ones(grid.shape)
+    for name in order:
+        expected = expected * terms[name](stack[name])
+    np.testing.assert_array_equal(model.evaluate(stack), expected)
 
 
 def test_road_form_rejects_bad_parameters() -> None:
