@@ -114,8 +114,8 @@ class _Layers:
 
 
 def _mask_feature(spec: FeatureSpec, layers: _Layers, grid) -> Feature:
-    m = rasterize.mask(layers.geometries(spec.layers), grid, spec.buffer_m, spec.all_touched)
-    return Feature(spec.name, m.astype(np.int16), "categorical", labels={0: spec.labels[0], 1: spec.labels[1]})
+    m = rasterize.mask(layers.geometries(spec.layers), grid, spec.buffer_m, spec.all_touched, np.int16)
+    return Feature(spec.name, m, "categorical", labels={0: spec.labels[0], 1: spec.labels[1]})
 
 
 def _distance_feature(spec: FeatureSpec, layers: _Layers, grid) -> Feature:

@@ -34,20 +34,22 @@ def line_ends(geoms: np.ndarray) -> np.ndarray:
     return np.concatenate([shapely.get_point(parts, 0), shapely.get_point(parts, -1)])
 
 
-def mask(geoms: np.ndarray, grid: Grid, buffer_m: float = 0.0, all_touched: bool = False) -> np.ndarray:
-    """Boolean (H, W) mask of the cells covered by ``geoms`` (optionally buffered by ``buffer_m`` metres)."""
+def mask(geoms: np.ndarray, grid: Grid, buffer_m: float = 0.0, all_touched: bool = False, dtype: type = bool) -> np.ndarray:
+    """(H, W) mask of the cells covered by ``geoms`` (optionally buffered by ``buffer_m`` metres):
+    boolean, or 0/1 in ``dtype`` (e.g. int16 category codes), burned in that type (no copy)."""
     geoms = _buffered(np.asarray(geoms, dtype=object), buffer_m)
+    as_bool = np.dtype(dtype) == np.bool_
     if geoms.size == 0:
-        return np.zeros(grid.shape, dtype=bool)
+        return np.zeros(grid.shape, dtype=dtype)
     burned = rasterize(
         ((g, 1) for g in geoms),
         out_shape=grid.shape,
         transform=grid.transform,
         fill=0,
         all_touched=all_touched,
-        dtype="uint8",
+        dtype="uint8" if as_bool else np.dtype(dtype).name,
     )
-    return burned.view(bool)  # 0/1 bytes are valid booleans: no second grid-size array
+    return burned.view(bool) if as_bool else burned  # 0/1 bytes are valid booleans
 
 
 def categories(geoms: np.ndarray, codes: np.ndarray, grid: Grid, fill: int = NODATA_CODE) -> np.ndarray:

@@ -46,6 +46,9 @@ def test_polygon_mask_is_cell_centre_containment(poly) -> None:
     expected = shapely.contains_xy(poly, XC, YC)
     tie = near_boundary(poly)
     np.testing.assert_array_equal(m[~tie], expected[~tie])
+    codes = rasterize.mask(np.array([poly]), GRID, dtype=np.int16)  # burned as 0/1 codes: the same cells
+    assert codes.dtype == np.int16
+    np.testing.assert_array_equal(codes, m.astype(np.int16))
 
 
 @settings(max_examples=40, deadline=None)
@@ -94,6 +97,7 @@ def test_union_of_several_polygons_and_empty_input() -> None:
     tie = near_boundary(a) | near_boundary(b)
     np.testing.assert_array_equal(m[~tie], expected[~tie])
     assert not rasterize.mask(np.empty(0, dtype=object), GRID).any()
+    assert rasterize.mask(np.empty(0, dtype=object), GRID, dtype=np.int16).dtype == np.int16
 
 
 @settings(max_examples=40, deadline=None)
