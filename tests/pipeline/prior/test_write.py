@@ -50,7 +50,7 @@ def test_table_file_writes_what_np_save_writes(tmp_path, monkeypatch, direct, sh
         monkeypatch.setattr(os, "open", no_direct)
     table = np.random.default_rng(shape[1]).random(shape)
     out = write.TableFile(tmp_path / "t.npy", write._npy_header(shape))
-    assert (out._buffer is not None) == (direct and hasattr(os, "O_DIRECT"))
+    assert out.direct == (direct and hasattr(os, "O_DIRECT"))
     for r0 in range(0, shape[0], 3):
         out.write(table[r0 : r0 + 3])
     out.close()
