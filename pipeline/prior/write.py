@@ -126,10 +126,7 @@ class TableFile:
         self.path, self.digest, self._size = path, table_hash(), len(header)
         self._fd, self._used, self._written, self._pending = None, 0, 0, None
         if hasattr(os, "O_DIRECT"):
-            try:
-                self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_DIRECT, 0o644)
-            except OSError:  # a file system without direct I/O
-                self._fd = None
+            self._fd = _open_direct(path, header)
         self.direct = self._fd is not None
         """Whether the file is written with O_DIRECT."""
         if self._fd is None:
@@ -187,6 +184,25 @@ class TableFile:
             os.close(self._fd)
             for buffer in self._buffers:
                 buffer.close()
+
+
+def _open_direct(path: Path, header: bytes) -> int | None:
+    """``path`` opened for direct writes, or None where the file system refuses them: at the open, or
+    (some accept the flag and fail the write) at a first aligned write of the header."""
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_DIRECT, 0o644)
+    except OSError:
+        return None
+    probe = mmap.mmap(-1, _DIRECT_ALIGN)
+    try:
+        probe[: len(header)] = header
+        _write_all(fd, memoryview(probe), 0)  # rewritten by the first chunk
+        return fd
+    except OSError:
+        os.close(fd)
+        return None
+    finally:
+        probe.close()
 
 
 def _write_all(fd: int, data: memoryview, offset: int) -> None:

@@ -30,27 +30,32 @@ def test_tables_are_the_bytes_np_save_writes(tmp_path):
         assert src.profile["compress"] == "deflate" and src.profile["blockxsize"] == 256
 
 
-@pytest.mark.parametrize("direct", [True, False])
+@pytest.mark.parametrize("direct", ["yes", "refused at open", "refused at write"])
 @pytest.mark.parametrize("shape", [(1, 1), (3, 511), (40, 205), (64, 64)])
 def test_table_file_writes_what_np_save_writes(tmp_path, monkeypatch, direct, shape):
     """TableFile's bytes and digest, written in uneven pieces across direct-I/O chunks (shrunk to 8 KiB)
-    or through the page cache (O_DIRECT refused), are np.save's file and the SHA-1 of its data."""
+    or through the page cache (O_DIRECT refused by the open, or by the first write), are np.save's file
+    and the SHA-1 of its data."""
     import hashlib
     import os
 
     import pipeline.prior.write as write
 
     monkeypatch.setattr(write, "DIRECT_CHUNK", 8192)
-    if not direct:
+    if direct == "refused at open":
         real_open = os.open
         def no_direct(path, flags, *args):
             if flags & getattr(os, "O_DIRECT", 0):
                 raise OSError(22, "Invalid argument")
             return real_open(path, flags, *args)
         monkeypatch.setattr(os, "open", no_direct)
+    elif direct == "refused at write":
+        def no_pwrite(fd, data, offset):
+            raise OSError(22, "Invalid argument")
+        monkeypatch.setattr(os, "pwrite", no_pwrite)
     table = np.random.default_rng(shape[1]).random(shape)
     out = write.TableFile(tmp_path / "t.npy", write._npy_header(shape))
-    assert out.direct == (direct and hasattr(os, "O_DIRECT"))
+    assert out.direct == (direct == "yes" and hasattr(os, "O_DIRECT"))
     for r0 in range(0, shape[0], 3):
         out.write(table[r0 : r0 + 3])
     out.close()
