@@ -454,11 +454,12 @@ def _phi(tab, x):
     )
 
 
-@nb.njit(cache=True, error_model="numpy", fastmath=FAST)
+@nb.njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
 def _window(values, frame, tab, u, v, s, wu):
     """f_s(u, v) exactly: Σ_cells value · ΔΦ_u · ΔΦ_v over the cells within 5 s of the point. ``frame``
     = (r0, c0, H, W): ``values`` holds the (H, W) grid's cells from row r0, column c0 on, at least those
-    read (the whole grid: (0, 0, H, W))."""
+    read (the whole grid: (0, 0, H, W)). Inlined into :func:`_one` (one call per rule point otherwise:
+    4-7 % of the sub-cell Gaussians' time; the same numbers bit for bit)."""
     r0, c0, h, w = frame[0], frame[1], frame[2], frame[3]
     reach = 5.0 * s
     # ceil - 1: a point on a cell edge also weighs the cell that ends there (reach may round to 0).
