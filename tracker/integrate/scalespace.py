@@ -654,37 +654,41 @@ def integrate_small(
     """:func:`tracker.integrate.integrate_checked`'s values for a small batch of checked Gaussians (metres)
     whose every member takes the pyramid (not tiny, within ``max_rho`` σ of the grid and at most
     ``max_spread`` times its area, :data:`~tracker.integrate.NEAR_RHO`, :data:`~tracker.integrate.NEAR_SPREAD`,
-    a finite value from :func:`_one`) with the levels already built; ``None`` otherwise, and the caller
-    takes the general path. The same numbers bit for bit: the same pixel arithmetic and tests as
-    :func:`~tracker.integrate.terraces.pixel_gaussians`, :func:`~tracker.integrate.tiny.is_tiny` and
-    :func:`~tracker.integrate.terraces.near_grid` (compiled without fast-math, as they are), then the
-    same :func:`_one` per Gaussian (its value does not depend on the batch or the order)."""
+    a finite value with look-ups) with the levels already built; ``None`` otherwise, and the caller takes
+    the general path. One compiled pass (:func:`_prepare`) does the pixel arithmetic of
+    :func:`~tracker.integrate.terraces.pixel_gaussians` and the tests of
+    :func:`~tracker.integrate.tiny.is_tiny` and :func:`~tracker.integrate.terraces.near_grid` (without
+    fast-math, as they are compiled), then the general path's own :func:`_kernel` integrates the batch in
+    its given order (no sort keys, no argsort, none of the numpy steps around them). The same compiled
+    kernel on the same inputs, so the same numbers bit for bit: a second compiled copy of :func:`_one`
+    (a serial loop calling it) can round differently in the last bit, since LLVM optimises the inlined
+    fast-math code per caller (seen: 1 ulp on one Gaussian of the test, in one compilation of two)."""
+    n = means.shape[0]
+    g = prior.grid
+    px = np.empty((5, n))
+    top = _prepare(means, covs, g.transform.c, g.transform.f, g.dx, g.dy, float(g.width), float(g.height), max_rho, max_spread, px)
     pyr = pyramid(prior, squared)
     p = pyr.packed
-    if not p.scale.size:
+    # the level of each Gaussian in the snapshot: its smaller σ below the top level's scale, with a margin
+    # for this σ's rounding against _order_keys's (the general path builds up to the first level >= it)
+    if not (top >= 0.0 and p.scale.size and top * (1.0 + 1e-6) < p.scale[-1]):
         return None
-    g = prior.grid
+    out = np.empty(n)
+    counts = np.empty(n, dtype=np.int64)
     slots, offset = pyr.slots(p)
-    out = np.empty(means.shape[0])
     args = (pyr.field, whole_frame(pyr.field), PHI_TABLE, p.coef, slots, p.scale, p.step, p.u0, p.v0, p.nu, p.nv, offset)
-    ok = _small_kernel(*args, means, covs, g.transform.c, g.transform.f, g.dx, g.dy, max_rho, max_spread, out)
-    return out if ok else None
+    _kernel(*args, px[0], px[1], px[2], px[3], px[4], np.arange(n), out, counts, nb.get_num_threads())
+    if counts.min() <= 0 or not np.isfinite(out).all():
+        return None
+    return out
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _small_kernel(values, frame, tab, coef, slots, scale, step, u0, v0, nu, nv, offset, means, covs, c, f, dx, dy, max_rho, max_spread, out):
-    """:func:`integrate_small`'s loop: False as soon as a Gaussian needs the general path. Its level is
-    in the snapshot when its smaller σ is below the top level's scale with a margin (the general path
-    builds up to the first level at or above it; the margin covers this σ's rounding against
-    :func:`_order_keys`'s)."""
-    h = float(frame[2])
-    w = float(frame[3])
-    xs1 = np.empty(MAX_POINTS)
-    ws1 = np.empty(MAX_POINTS)
-    xs2 = np.empty(MAX_POINTS)
-    ws2 = np.empty(MAX_POINTS)
-    wu = np.empty(int(5.0 * 2 * scale[0]) + 9)
-    top = scale[scale.shape[0] - 1]
+def _prepare(means, covs, c, f, dx, dy, w, h, max_rho, max_spread, px):
+    """Pixel Gaussians (rows uc, vc, cuu, cuv, cvv of ``px``) as :func:`~tracker.integrate.terraces.pixel_gaussians`
+    computes them, and the largest smaller σ (cells); -1 as soon as one is tiny or not near the grid
+    (:func:`~tracker.integrate.tiny.is_tiny`, :func:`~tracker.integrate.terraces.near_grid`: the same tests)."""
+    top = 0.0
     for n in range(means.shape[0]):
         uc = (means[n, 0] - c) / dx
         vc = (f - means[n, 1]) / dy
@@ -692,20 +696,20 @@ def _small_kernel(values, frame, tab, coef, slots, scale, step, u0, v0, nu, nv, 
         cvv = covs[n, 1, 1] / (dy * dy)
         cuv = -0.5 * (covs[n, 0, 1] + covs[n, 1, 0]) / (dx * dy)
         if cuu + cvv <= TINY * TINY:
-            return False
+            return -1.0
         lo2 = grid_radii(uc, vc, cuu, cuv, cvv, w, h)[0]
         spread = 2.0 * np.pi * root_det(cuu, cuv, cvv)[0]
         if not (lo2 <= max_rho * max_rho and spread <= max_spread * w * h):
-            return False
+            return -1.0
         m = 0.5 * (cuu + cvv)
         dd = 0.5 * (cuu - cvv)
-        if np.sqrt(max(m - np.sqrt(dd * dd + cuv * cuv), 0.0)) * (1.0 + 1e-6) >= top:
-            return False
-        value, looks = _one(values, frame, tab, coef, slots, scale, step, u0, v0, nu, nv, offset, uc, vc, cuu, cuv, cvv, xs1, ws1, xs2, ws2, wu)
-        if looks <= 0 or not np.isfinite(value):
-            return False
-        out[n] = value
-    return True
+        top = max(top, np.sqrt(max(m - np.sqrt(dd * dd + cuv * cuv), 0.0)))
+        px[0, n] = uc
+        px[1, n] = vc
+        px[2, n] = cuu
+        px[3, n] = cuv
+        px[4, n] = cvv
+    return top
 
 
 NO_CELLS = np.zeros(4, np.int64)
