@@ -78,8 +78,10 @@ from tracker.association.walk import (
     grid_place,
     half_log_det,
     link_pairs,
+    needed_pairs,
     pair_geometry,
     pair_geometry_parallel,
+    pair_scores,
     walk,
     walk_sequential,
 )
@@ -389,6 +391,16 @@ class Tracker:
         if not h.size:
             return log_g, post_m, post_c, np.zeros(0)
         t0 = time.perf_counter()
+        if isinstance(self.s_model, ExpS) and not isinstance(self.motion, ConstantVelocity):
+            # static, S = e^{-nτ}: the bound, the gathers and the scores in two compiled passes
+            log_c, need, k, means, covs = needed_pairs(
+                log_g, self.hypotheses_._log_c, h, rep, blk[3], self.log_rmax, self.s_model.tau, post_m, post_c
+            )
+            self.stats_["integrals"] += k
+            log_needed = _log(self.integrator(self.prior, means, covs)) if k else np.zeros(0)
+            score, log_i = pair_scores(log_g, log_c, need, log_needed)
+            self.timings_["integrals"] += time.perf_counter() - t0
+            return score, post_m, post_c, log_i
         if isinstance(self.motion, ConstantVelocity):
             log_c = _log(self.integrator(self.prior, pred_m, pred_c))
             need = np.ones(h.size, bool)

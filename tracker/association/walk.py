@@ -153,6 +153,54 @@ def pair_geometry(rep, h, blk, hyp, cfg):
     return log_g, post_m, post_c, pred_m, pred_c
 
 
+@njit(cache=True)
+def needed_pairs(log_g, log_c_all, h, rep, log_unseen, log_rmax, tau, post_m, post_c):
+    """TT with S = e^{-nτ}, static hypotheses: ln c of each pair's hypothesis, the pairs whose bound
+    (ln G - ln c) + ln r_max reaches ln ∫G(z,V)r - τ (:meth:`~tracker.association.greedy.Tracker._needs_integral`,
+    the same operations in the same order), their count, and their posterior position means (k, 2) and
+    covariances (k, 2, 2), contiguous for the integrator: the numpy gathers of ``Tracker._score`` in one pass."""
+    n = h.shape[0]
+    log_c = np.empty(n)
+    need = np.empty(n, dtype=np.bool_)
+    k = 0
+    for p in range(n):
+        lc = log_c_all[h[p]]
+        log_c[p] = lc
+        need[p] = (log_g[p] - lc) + log_rmax >= log_unseen[rep[p]] - tau
+        k += need[p]
+    means = np.empty((k, 2))
+    covs = np.empty((k, 2, 2))
+    q = 0
+    for p in range(n):
+        if need[p]:
+            means[q, 0] = post_m[p, 0]
+            means[q, 1] = post_m[p, 1]
+            covs[q, 0, 0] = post_c[p, 0, 0]
+            covs[q, 0, 1] = post_c[p, 0, 1]
+            covs[q, 1, 0] = post_c[p, 1, 0]
+            covs[q, 1, 1] = post_c[p, 1, 1]
+            q += 1
+    return log_c, need, k, means, covs
+
+
+@njit(cache=True)
+def pair_scores(log_g, log_c, need, log_needed):
+    """Scores (ln G + ln ∫G r) - ln c of the needed pairs whose ln ∫G r (``log_needed``, in pair order) is
+    finite, -inf for the others, and ln ∫G r per pair (0 where not needed), as ``Tracker._score`` computes them."""
+    n = log_g.shape[0]
+    score = np.full(n, -np.inf)
+    log_i = np.zeros(n)
+    q = 0
+    for p in range(n):
+        if need[p]:
+            li = log_needed[q]
+            q += 1
+            log_i[p] = li
+            if np.isfinite(li):
+                score[p] = log_g[p] + li - log_c[p]
+    return score, log_i
+
+
 @njit(cache=True, parallel=True)
 def pair_geometry_parallel(rep, h, blk, hyp, cfg):
     """:func:`pair_geometry` with the pairs shared among numba's threads (the same numbers: each pair is

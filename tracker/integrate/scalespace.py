@@ -38,6 +38,8 @@ import numpy as np
 from scipy.special import ndtr
 
 from pipeline.prior import TerrainPrior
+from tracker.integrate.terraces import grid_radii, root_det
+from tracker.integrate.tiny import TINY
 
 FAST = {"nsz", "arcp", "contract", "afn", "reassoc"}
 """LLVM fast-math flags for the kernels: fused multiply-adds and reassociation (~30 % faster),
@@ -454,11 +456,12 @@ def _phi(tab, x):
     )
 
 
-@nb.njit(cache=True, error_model="numpy", fastmath=FAST)
+@nb.njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
 def _window(values, frame, tab, u, v, s, wu):
     """f_s(u, v) exactly: Σ_cells value · ΔΦ_u · ΔΦ_v over the cells within 5 s of the point. ``frame``
     = (r0, c0, H, W): ``values`` holds the (H, W) grid's cells from row r0, column c0 on, at least those
-    read (the whole grid: (0, 0, H, W))."""
+    read (the whole grid: (0, 0, H, W)). Inlined into :func:`_one` (one call per rule point otherwise:
+    4-7 % of the sub-cell Gaussians' time; the same numbers bit for bit)."""
     r0, c0, h, w = frame[0], frame[1], frame[2], frame[3]
     reach = 5.0 * s
     # ceil - 1: a point on a cell edge also weighs the cell that ends there (reach may round to 0).
@@ -637,6 +640,76 @@ def integrate_pixels(
     args = (pyr.field, whole_frame(pyr.field), PHI_TABLE, p.coef, slots, p.scale, p.step, p.u0, p.v0, p.nu, p.nv, offset)
     _kernel(*args, uc, vc, cuu, cuv, cvv, np.argsort(keys), out, counts, nb.get_num_threads())
     return out, counts
+
+
+SMALL_BATCH = 256
+"""Batches of fewer Gaussians than this go to :func:`integrate_small` first: one serial compiled call
+from metres to integrals, without the pyramid's sort or a parallel launch (the tracker's refreshes: ~4,000
+calls of ~7 Gaussians on the 1 M-report stream, ~70 µs each through the general path)."""
+
+
+def integrate_small(
+    prior: TerrainPrior, means: np.ndarray, covs: np.ndarray, squared: bool, max_rho: float, max_spread: float
+) -> np.ndarray | None:
+    """:func:`tracker.integrate.integrate_checked`'s values for a small batch of checked Gaussians (metres)
+    whose every member takes the pyramid (not tiny, within ``max_rho`` σ of the grid and at most
+    ``max_spread`` times its area, :data:`~tracker.integrate.NEAR_RHO`, :data:`~tracker.integrate.NEAR_SPREAD`,
+    a finite value with look-ups) with the levels already built; ``None`` otherwise, and the caller takes
+    the general path. One compiled pass (:func:`_prepare`) does the pixel arithmetic of
+    :func:`~tracker.integrate.terraces.pixel_gaussians` and the tests of
+    :func:`~tracker.integrate.tiny.is_tiny` and :func:`~tracker.integrate.terraces.near_grid` (without
+    fast-math, as they are compiled), then the general path's own :func:`_kernel` integrates the batch in
+    its given order (no sort keys, no argsort, none of the numpy steps around them). The same compiled
+    kernel on the same inputs, so the same numbers bit for bit: a second compiled copy of :func:`_one`
+    (a serial loop calling it) can round differently in the last bit, since LLVM optimises the inlined
+    fast-math code per caller (seen: 1 ulp on one Gaussian of the test, in one compilation of two)."""
+    n = means.shape[0]
+    g = prior.grid
+    px = np.empty((5, n))
+    top = _prepare(means, covs, g.transform.c, g.transform.f, g.dx, g.dy, float(g.width), float(g.height), max_rho, max_spread, px)
+    pyr = pyramid(prior, squared)
+    p = pyr.packed
+    # the level of each Gaussian in the snapshot: its smaller σ below the top level's scale, with a margin
+    # for this σ's rounding against _order_keys's (the general path builds up to the first level >= it)
+    if not (top >= 0.0 and p.scale.size and top * (1.0 + 1e-6) < p.scale[-1]):
+        return None
+    out = np.empty(n)
+    counts = np.empty(n, dtype=np.int64)
+    slots, offset = pyr.slots(p)
+    args = (pyr.field, whole_frame(pyr.field), PHI_TABLE, p.coef, slots, p.scale, p.step, p.u0, p.v0, p.nu, p.nv, offset)
+    _kernel(*args, px[0], px[1], px[2], px[3], px[4], np.arange(n), out, counts, nb.get_num_threads())
+    if counts.min() <= 0 or not np.isfinite(out).all():
+        return None
+    return out
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _prepare(means, covs, c, f, dx, dy, w, h, max_rho, max_spread, px):
+    """Pixel Gaussians (rows uc, vc, cuu, cuv, cvv of ``px``) as :func:`~tracker.integrate.terraces.pixel_gaussians`
+    computes them, and the largest smaller σ (cells); -1 as soon as one is tiny or not near the grid
+    (:func:`~tracker.integrate.tiny.is_tiny`, :func:`~tracker.integrate.terraces.near_grid`: the same tests)."""
+    top = 0.0
+    for n in range(means.shape[0]):
+        uc = (means[n, 0] - c) / dx
+        vc = (f - means[n, 1]) / dy
+        cuu = covs[n, 0, 0] / (dx * dx)
+        cvv = covs[n, 1, 1] / (dy * dy)
+        cuv = -0.5 * (covs[n, 0, 1] + covs[n, 1, 0]) / (dx * dy)
+        if cuu + cvv <= TINY * TINY:
+            return -1.0
+        lo2 = grid_radii(uc, vc, cuu, cuv, cvv, w, h)[0]
+        spread = 2.0 * np.pi * root_det(cuu, cuv, cvv)[0]
+        if not (lo2 <= max_rho * max_rho and spread <= max_spread * w * h):
+            return -1.0
+        m = 0.5 * (cuu + cvv)
+        dd = 0.5 * (cuu - cvv)
+        top = max(top, np.sqrt(max(m - np.sqrt(dd * dd + cuv * cuv), 0.0)))
+        px[0, n] = uc
+        px[1, n] = vc
+        px[2, n] = cuu
+        px[3, n] = cuv
+        px[4, n] = cvv
+    return top
 
 
 NO_CELLS = np.zeros(4, np.int64)

@@ -19,8 +19,10 @@ from tracker.association.walk import (
     grid_gate,
     grid_place,
     half_log_det,
+    needed_pairs,
     pair_geometry,
     pair_geometry_parallel,
+    pair_scores,
 )
 from tracker.models.motion import ConstantVelocity, Static
 from tracker.models.sfunc import ExpS
@@ -149,3 +151,33 @@ def test_pair_geometry_parallel_is_the_serial_one():
         cfg = (41.4, True, 0.0, 0, 0.0, m_kind, q, vel_std)
         for a, b in zip(pair_geometry(rep, h, blk, hyp, cfg), pair_geometry_parallel(rep, h, blk, hyp, cfg), strict=True):
             assert np.array_equal(a, b)
+
+
+def test_needed_pairs_and_scores_are_the_numpy_formulas():
+    # Tracker._score's numpy steps (bound, gathers, scores), bit for bit, with bounds on both sides of the
+    # threshold, zero integrals (ln = -inf) and no pair needed at all.
+    rng = np.random.default_rng(12)
+    m, n, k = 200, 90, 4000
+    rep, h = rng.integers(0, m, k), rng.integers(0, n, k)
+    log_g = rng.normal(-10.0, 3.0, k)
+    log_c_all = rng.normal(-12.0, 2.0, n + 7)  # spare capacity beyond the n hypotheses
+    log_unseen = rng.normal(-11.0, 3.0, m)
+    post_m = rng.uniform(0, 5000, (k, 2))
+    post_c = random_covs(rng, k, 2.0, 60.0)
+    for log_rmax, tau in ((2.5, -1.7), (-30.0, -1.7)):
+        log_c, need, n_need, means, covs = needed_pairs(log_g, log_c_all, h, rep, log_unseen, log_rmax, tau, post_m, post_c)
+        want_c = log_c_all[:n][h]
+        want_need = (log_g - want_c) + log_rmax >= log_unseen[rep] - tau
+        assert np.array_equal(log_c, want_c) and np.array_equal(need, want_need) and n_need == want_need.sum()
+        assert np.array_equal(means, post_m[want_need, :2]) and np.array_equal(covs, np.ascontiguousarray(post_c[want_need, :2, :2]))
+        assert means.flags.c_contiguous and covs.flags.c_contiguous
+        with np.errstate(divide="ignore"):
+            log_needed = np.log(np.where(rng.random(n_need) < 0.1, 0.0, rng.random(n_need)))
+        score, log_i = pair_scores(log_g, log_c, need, log_needed)
+        want_i = np.zeros(k)
+        want_i[want_need] = log_needed
+        want_s = np.full(k, -np.inf)
+        ok = want_need & np.isfinite(want_i)
+        want_s[ok] = log_g[ok] + want_i[ok] - want_c[ok]
+        assert np.array_equal(log_i, want_i) and np.array_equal(score, want_s)
+    assert n_need == 0  # ln r_max = -30: no bound reaches previouslyUnseen

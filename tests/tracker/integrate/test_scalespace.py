@@ -200,3 +200,40 @@ def test_needle_gaussians_are_handed_to_the_terraces() -> None:
     assert scalespace.integrate_pixels(ROUGH, *(np.atleast_1d(a) for a in pixel_gaussians(ROUGH, mean[None], cov[None])), False)[1][0] == 0
     ref = reference_integrate(ROUGH, mean[None], cov[None])[0]
     assert integrate(ROUGH, mean[None], cov[None])[0] == pytest.approx(ref, rel=0.01)
+
+
+def test_small_batches_equal_the_general_path() -> None:
+    """:func:`scalespace.integrate_small` (batches under SMALL_BATCH) gives the general path's values bit
+    for bit, and leaves every batch with a Gaussian it does not take (tiny, off the grid, a needle, a level
+    not built yet) to the general path."""
+    prior = TerrainPrior.from_array(rough_field(seed=4), GRID)
+    means, covs = random_gaussians(GRID, 300, seed=5, max_sigma=30.0)
+    rng = np.random.default_rng(6)
+    # thin sub-cell Gaussians (smaller σ under one cell, as most tracker reports), rotated
+    n = 200
+    sd = np.exp(rng.uniform(np.log(0.06), np.log(1.5), (n, 2))) * CELL
+    ang = rng.uniform(0.0, np.pi, n)
+    c, s = np.cos(ang), np.sin(ang)
+    thin = np.empty((n, 2, 2))
+    thin[:, 0, 0] = c * c * sd[:, 0] ** 2 + s * s * sd[:, 1] ** 2
+    thin[:, 1, 1] = s * s * sd[:, 0] ** 2 + c * c * sd[:, 1] ** 2
+    thin[:, 0, 1] = thin[:, 1, 0] = c * s * (sd[:, 0] ** 2 - sd[:, 1] ** 2)
+    centre = np.column_stack([rng.uniform(0, W * CELL, n) + GRID.transform.c, GRID.transform.f - rng.uniform(0, H * CELL, n)])
+    means, covs = np.concatenate([means, centre]), np.concatenate([covs, thin])
+    assert scalespace.integrate_small(prior, means[:5], covs[:5], False, 0.5, 4.0) is None  # no level built yet
+    for squared in (False, True):
+        whole = integrate(prior, means, covs, squared)  # >= SMALL_BATCH: the general path (builds the levels)
+        taken = 0
+        for i in range(0, means.shape[0], 7):
+            part = scalespace.integrate_small(prior, means[i : i + 7], covs[i : i + 7], squared, 0.5, 4.0)
+            if part is not None:
+                taken += 1
+                np.testing.assert_array_equal(part, whole[i : i + 7])
+            np.testing.assert_array_equal(integrate(prior, means[i : i + 7], covs[i : i + 7], squared), whole[i : i + 7])
+        assert taken >= 20  # the thin ones, seven at a time
+    tiny = np.diag([(0.01 * CELL) ** 2, (0.02 * CELL) ** 2])[None]
+    off = means[-1:] + np.array([[-10 * W * CELL, 0.0]])
+    needle = np.diag([(400.0 * CELL) ** 2, (0.2 * CELL) ** 2])[None]
+    wide = np.diag([(200.0 * CELL) ** 2, (150.0 * CELL) ** 2])[None]  # above the levels built so far
+    for m, cv in ((means[-1:], tiny), (off, covs[-1:]), (means[-1:], needle), (means[-1:], wide)):
+        assert scalespace.integrate_small(prior, np.concatenate([means[-3:], m]), np.concatenate([covs[-3:], cv]), False, 0.5, 4.0) is None
