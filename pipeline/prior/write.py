@@ -46,6 +46,9 @@ BUILD_TAG = "PRIOR_BUILD"
 WRITE_CACHE_BYTES = 64 << 20
 """GDAL's block cache while a GeoTIFF is written (bytes): the default, 5% of RAM, would hold most of
 a large grid's blocks again beside the arrays they are written from."""
+DEFLATE_LEVEL = 4
+"""DEFLATE level of the COGs (GDAL's default is 6): on a 10,000² density 1.3 s against 1.9-2.6 s for the
+copy, for 5 % more bytes (72.9 against 69.2 MiB); level 1 is 0.35 s faster still but 23 % larger."""
 TABLE_TAGS = ("SAT_SHA1", "SAT2_SHA1")
 """The tags holding the SHA-1 (hex) of the data bytes after the ``.npy`` header of each table, as
 :func:`sat_paths` orders them."""
@@ -85,7 +88,7 @@ def cog_writer(path: str | Path, grid: Grid, dtype: str, resampling: str = "AVER
         with rasterio.open(plain, "w", **geotiff_profile(grid, dtype, None, BIGTIFF="IF_SAFER", **options)) as dst:
             yield dst
         rasterio.shutil.copy(
-            plain, path, driver="COG", COMPRESS="DEFLATE", BLOCKSIZE=BLOCK,
+            plain, path, driver="COG", COMPRESS="DEFLATE", LEVEL=DEFLATE_LEVEL, BLOCKSIZE=BLOCK,
             OVERVIEW_RESAMPLING=resampling, NUM_THREADS="ALL_CPUS", BIGTIFF="IF_SAFER",
         )
 
