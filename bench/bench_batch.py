@@ -13,12 +13,12 @@ from __future__ import annotations
 import cProfile
 import os
 import pstats
-import resource
 import time
 
 import numpy as np
 
 from bench.bench_tracker import scenario, synthetic_prior
+from bench.timing import peak_gib, reset_peak
 from tracker.association.batch import BatchAssociator
 from tracker.association.greedy import Tracker
 from tracker.gating.gate import gate_unchecked
@@ -60,6 +60,7 @@ def _phases(prof: cProfile.Profile, total: float) -> dict[str, float]:
 
 
 def run(quick: bool = False) -> dict:
+    reset_peak()  # bench.run's process may have run larger benches before this one
     size_m, n_targets, n_reports = (32_000.0, 10_000, 100_000) if quick else (100_000.0, 100_000, 1_000_000)
     prior = synthetic_prior(size_m)
     reports = scenario(prior, n_targets, n_reports)
@@ -82,7 +83,7 @@ def run(quick: bool = False) -> dict:
     clock = _Clock()
     moved = ch.sweep(1.0, np.random.default_rng(1))
     sweep_s, sweep_cpu = clock.read()
-    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+    rss = peak_gib()
     rounds, integrals = ba.stats_["rounds"], ba.stats_["integrals"] - setup_integrals
     total_s, total_cpu = greedy_s + setup_s + sweep_s, greedy_cpu + setup_cpu + sweep_cpu
     base = BatchAssociator(prior, "TT", tau=-1.7, gater=gate_unchecked).chain(rep, g[keep])

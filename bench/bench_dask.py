@@ -21,7 +21,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-import resource
 import subprocess
 import sys
 import tempfile
@@ -29,6 +28,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from bench.timing import peak_gib
 
 ROOT = Path(__file__).resolve().parents[1]
 CELL_M = 20.0
@@ -115,17 +116,6 @@ def write_region(folder: Path, n: int, name: str) -> Path:
     return path
 
 
-def _peak_gib() -> float:
-    """This process's peak resident memory (GiB). Linux's ``ru_maxrss`` carries over the forking
-    parent's high-water mark across exec (a child of a 2 GiB parent reports >= 2 GiB), so it read
-    the bench parent's peak, not the build's; ``VmHWM`` belongs to the process's own address space."""
-    try:
-        with open("/proc/self/status") as f:
-            return next(int(line.split()[1]) for line in f if line.startswith("VmHWM:")) / 2**20  # KiB
-    except (OSError, StopIteration):
-        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # not Linux: KiB on most systems
-
-
 def child(mode: str, region: str, out: str, tile: int) -> dict:
     """One build in this process: ``memory`` (build_region_prior + write) or ``tiled`` (2 workers)."""
     import warnings
@@ -143,7 +133,7 @@ def child(mode: str, region: str, out: str, tile: int) -> dict:
         t, cpu = time.perf_counter(), time.process_time()
         build_region_prior(config, progress=False).write(out)
         return {"seconds": time.perf_counter() - t, "cpu_seconds": time.process_time() - cpu,
-                "peak_gib": _peak_gib(), "load_average": list(os.getloadavg())}
+                "peak_gib": peak_gib(), "load_average": list(os.getloadavg())}
     from distributed import Client, LocalCluster
 
     from pipeline.tiled.build import build_prior_tiled
@@ -153,8 +143,8 @@ def child(mode: str, region: str, out: str, tile: int) -> dict:
         t = time.perf_counter()
         summary = build_prior_tiled(config, out, client=client, tile=tile, progress=False)
         seconds = time.perf_counter() - t
-        workers = client.run(_peak_gib)
-    client_peak = _peak_gib()
+        workers = client.run(peak_gib)
+    client_peak = peak_gib()
     return {"seconds": seconds, "client_peak_gib": client_peak, "worker_peak_gib": workers,
             "peak_gib": client_peak + sum(workers.values()), "summary": summary}
 

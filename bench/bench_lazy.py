@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import json
 import os
-import resource
 import subprocess
 import sys
 import tempfile
@@ -31,6 +30,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from bench.timing import peak_gib
 
 ROOT = Path(__file__).resolve().parents[1]
 GOAL_RATIO = 0.5
@@ -141,7 +142,7 @@ def child(n: int, n_reports: int, clusters: list[int], cluster_cells: float, cac
     return {
         "n": n, "n_reports": n_reports, "cluster_cells": cluster_cells, "cache_gib": cache_gib,
         "whole_small_per_s": n_reports / min(before, after), "whole_small_runs_per_s": [n_reports / before, n_reports / after], "runs": runs, "dask": dask_run, "cone": cone, "identity": identity,
-        "peak_rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
+        "peak_rss_gib": peak_gib(),
         "load_average": list(os.getloadavg()),
     }
 
@@ -181,7 +182,7 @@ def track_file(folder: str, windowed: bool) -> dict:
     np.save(Path(folder) / f"assign_{int(windowed)}.npy", out)
     return {"windowed": windowed, "read_s": read_s, "track_s": track_s, "n_detected": int(tr.n_detected_),
             "density_gib": 0.0 if windowed else prior.density.nbytes / 2**30,
-            "peak_rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20}
+            "peak_rss_gib": peak_gib()}
 
 
 def _child(*args: str) -> dict:
