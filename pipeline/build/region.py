@@ -10,7 +10,7 @@ import json
 import os
 import resource
 import warnings
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -89,6 +89,7 @@ class _Layers:
         self.config = config
         self._vectors: dict[tuple[str, tuple[str, ...]], VectorLayer] = {}
         self._surfaces: dict[str, LidarSurface] = {}
+        self._dems: dict[str, Future] = {}
 
     def vector(self, name: str, columns: tuple[str, ...] = ()) -> VectorLayer:
         key = (name, columns)
@@ -107,6 +108,18 @@ class _Layers:
             except LidarError as exc:
                 raise LidarError(f"[layers.{name}]: {exc}") from None
         return self._surfaces[name]
+
+    def prefetch_dems(self, names: set[str], pool: ThreadPoolExecutor) -> None:
+        """Start reading the DEM layers ``names`` onto the grid on ``pool`` (GDAL's read and warp release
+        the GIL, so they run beside the features built before them)."""
+        for name in sorted(names):
+            self._dems[name] = pool.submit(read_dem, self.config.layers[name], self.config.grid)
+
+    def dem(self, name: str) -> np.ndarray:
+        """Elevation (m) of raster layer ``name`` on the grid, an array of the caller's own: the prefetched
+        read the first time, a new read after that."""
+        future = self._dems.pop(name, None)
+        return future.result() if future is not None else read_dem(self.config.layers[name], self.config.grid)
 
     def geometries(self, names: tuple[str, ...]) -> np.ndarray:
         parts = [self.vector(n).geometries for n in names]
@@ -139,13 +152,13 @@ def _slope_feature(spec: FeatureSpec, layers: _Layers, grid) -> Feature:
     if layer.kind == "pointcloud":
         slope = layers.surface(spec.layer).slope
     else:
-        slope = slope_deg(read_dem(layer, grid), grid.dx, grid.dy, in_place=True)  # the DEM is ours: no second grid
+        slope = slope_deg(layers.dem(spec.layer), grid.dx, grid.dy, in_place=True)  # the DEM is ours: no second grid
     return Feature(spec.name, slope, "continuous", units="deg")
 
 
 def _elevation_feature(spec: FeatureSpec, layers: _Layers, grid) -> Feature:
     layer = layers.config.layers[spec.layer]
-    z = layers.surface(spec.layer).elevation if layer.kind == "pointcloud" else read_dem(layer, grid)
+    z = layers.surface(spec.layer).elevation if layer.kind == "pointcloud" else layers.dem(spec.layer)
     return Feature(spec.name, z, "continuous", units="m")
 
 
@@ -199,11 +212,15 @@ def build_features(config: RegionConfig, progress: bool = True) -> FeatureStack:
     stack = FeatureStack(config.grid)
     layers = _Layers(config)
     specs = sorted(config.features.values(), key=lambda f: f.type == "classes")
-    for spec in tqdm(specs, desc=f"features of {config.name}", unit="feature", disable=not progress):
-        if spec.type == "classes":
-            stack.add(_classes_feature(spec, stack))
-        else:
-            stack.add(_BUILDERS[spec.type](spec, layers, config.grid))
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        # the DEMs are read and warped (GDAL) while the features before them are built: 0.5-0.9 s of a
+        # 10,000^2 build whose rasterizing and page faults leave a core idle
+        layers.prefetch_dems({s.layer for s in specs if s.type in ("slope", "elevation") and config.layers[s.layer].kind != "pointcloud"}, pool)
+        for spec in tqdm(specs, desc=f"features of {config.name}", unit="feature", disable=not progress):
+            if spec.type == "classes":
+                stack.add(_classes_feature(spec, stack))
+            else:
+                stack.add(_BUILDERS[spec.type](spec, layers, config.grid))
     return stack
 
 

@@ -235,6 +235,26 @@ def test_slope_from_dem_in_another_crs_is_the_plane_angle(tmp_path: Path) -> Non
     np.testing.assert_allclose(slope, np.degrees(np.arctan(0.1)), atol=0.05)
 
 
+def test_features_sharing_a_dem_get_their_own_grids(tmp_path: Path) -> None:
+    """The DEM is read ahead of the features (on a thread) once per layer; a second feature of the same
+    layer reads its own grid, so the first one's slope, computed in place, is not its elevation."""
+    from pipeline.features.slope import slope_deg
+    from pipeline.gis.layers import read_dem
+
+    cols, rows = np.meshgrid(np.arange(60) + 0.5, np.arange(50) + 0.5)
+    dem = write_raster(tmp_path / "dem.tif", (100 + 0.3 * cols ** 1.5 + 0.2 * rows).astype(np.float32),
+                       Affine(20.0, 0, GRID_BOUNDS[0], 0, -20.0, GRID_BOUNDS[3]), "EPSG:32734")
+    cfg = load_config(small_region(tmp_path, {"slope": {"type": "slope", "layer": "dem"},
+                                              "height": {"type": "elevation", "layer": "dem"},
+                                              "slope_again": {"type": "slope", "layer": "dem"}}, dem=dem))
+    stack = build_features(cfg, progress=False)
+    z = read_dem(cfg.layers["dem"], cfg.grid)
+    np.testing.assert_array_equal(stack["height"].values, z)
+    expected = slope_deg(z, cfg.grid.dx, cfg.grid.dy)
+    np.testing.assert_array_equal(stack["slope"].values, expected)
+    np.testing.assert_array_equal(stack["slope_again"].values, expected)
+
+
 def test_slope_from_point_cloud(tmp_path: Path) -> None:
     pytest.importorskip("open3d")
     rng = np.random.default_rng(3)
