@@ -108,7 +108,7 @@ def large_grid_child(n: int) -> dict:
     """Features + prior on an n x n grid of 20 m cells; timings per step and this process's peak RSS."""
     from affine import Affine
 
-    from bench.bench_dask import _peak_gib
+    from bench.timing import peak_gib
     from pipeline.build.region import _likelihood
     from pipeline.features import rasterize
     from pipeline.features.distance import distance_m
@@ -173,7 +173,7 @@ def large_grid_child(n: int) -> dict:
         "steps_cpu_s": cpu,
         "total_cpu_s": sum(cpu.values()),
         "load_average": list(os.getloadavg()),
-        "peak_rss_gib": _peak_gib(),  # VmHWM: ru_maxrss would carry over the bench parent's peak
+        "peak_rss_gib": peak_gib(),  # VmHWM: ru_maxrss would carry over the bench parent's peak
         "total_mass": total_mass,
     }
 
