@@ -14,6 +14,7 @@ import math
 import numpy as np
 from numba import njit
 
+from tracker.gating.grid import counting_order
 from tracker.models.sfunc import log_s_code
 
 
@@ -301,16 +302,7 @@ def earlier_dependency(zc, V, lam_v, gamma, multi_pos, bm, Bm, pair_pos, pair_cl
         ix = min(int((zc[q, 0] - lo[0]) / cell), nx - 1)
         iy = min(int((zc[q, 1] - lo[1]) / cell), ny - 1)
         key[q] = iy * nx + ix
-    start = np.zeros(nx * ny + 1, np.int64)
-    for q in range(m):
-        start[key[q] + 1] += 1
-    for k in range(nx * ny):
-        start[k + 1] += start[k]
-    fill = start[:-1].copy()
-    members = np.empty(m, np.int64)
-    for q in range(m):
-        members[fill[key[q]]] = q
-        fill[key[q]] += 1
+    members, start = counting_order(key, nx * ny)
     n_multi = multi_pos.size
     for t in range(m + n_multi + pair_pos.size):
         if t < m:

@@ -29,6 +29,7 @@ import numpy as np
 from numba import njit, prange
 
 from tracker.association.cell_lists import relink
+from tracker.gating.grid import counting_order
 from tracker.models.motion import MOTION_CV, cv_cov_entry, cv_mean_entry
 from tracker.models.sfunc import log_s_ratio_code
 
@@ -247,17 +248,7 @@ def build_report_grid(z, V, gamma):
     keys = np.empty(m, np.int64)
     for k in range(m):
         keys[k] = int((z[k, 0] - x0) / cell) * ny + int((z[k, 1] - y0) / cell)
-    starts = np.zeros(nx * ny + 1, np.int64)
-    for k in range(m):
-        starts[keys[k] + 1] += 1
-    for c in range(nx * ny):
-        starts[c + 1] += starts[c]
-    # the counts' stable scatter: the order a stable argsort of the keys gives, without the sort
-    fill = starts[:-1].copy()
-    order = np.empty(m, np.int64)
-    for k in range(m):
-        order[fill[keys[k]]] = k
-        fill[keys[k]] += 1
+    order, starts = counting_order(keys, nx * ny)  # the order a stable argsort of the keys gives
     grid = np.array([x0, y0, cell, lam_v, float(nx), float(ny)])
     return order, starts, grid
 
