@@ -225,9 +225,11 @@ def cell_integrals(prior: TerrainPrior, kernel, squared: bool, uc, vc, cuu, cuv,
         return kernel(field * field if squared else field, 0, 0, uc, vc, cuu, cuv, cvv)
     out = np.empty(uc.shape[0])
     reach_u, reach_v = np.sqrt(cuu) * READ_SPAN + 2.0, np.sqrt(cvv) * READ_SPAN + 2.0
-    for group, (r0, r1, c0, c1) in window_groups(uc, vc, reach_u, reach_v, prior.grid.shape, WINDOW_BLOCK):
+    order, group, bounds = window_groups(uc, vc, reach_u, reach_v, prior.grid.shape, WINDOW_BLOCK)
+    groups = np.split(order, np.flatnonzero(np.diff(group)) + 1) if order.size else []
+    for members, (r0, r1, c0, c1) in zip(groups, bounds.tolist(), strict=True):
         field = density[r0:r1, c0:c1]
-        out[group] = kernel(field * field if squared else field, r0, c0, *(a[group] for a in (uc, vc, cuu, cuv, cvv)))
+        out[members] = kernel(field * field if squared else field, r0, c0, *(a[members] for a in (uc, vc, cuu, cuv, cvv)))
     return out
 
 

@@ -110,8 +110,15 @@ class LazyPyramid:
         self.pool = np.zeros((self.n_slots + 1, _BLOCK), np.float32)
         self.pool[MISSING] = np.nan
         self._free = [s for s in range(self.n_slots, -1, -1) if s != MISSING]
-        self._tiles: OrderedDict[tuple[int, int, int], np.ndarray] = OrderedDict()
-        self._pinned: set[tuple[int, int, int]] = set()
+        self._tiles: dict[tuple[int, int, int], np.ndarray] = {}  # built tiles: their positions in slots
+        # Per tile of every level (:meth:`_tile_ids`): when it was last used (for least-recently-used
+        # eviction) and whether the batch being integrated needs it (pinned: not evicted).
+        self._tile_offset = np.zeros(0, np.int64)  # per level: its first tile's id
+        self._tiles_across = np.zeros(0, np.int64)  # per level: tiles per row
+        self._used = np.zeros(0, np.int64)
+        self._pinned = np.zeros(0, bool)
+        self._pinned_ids: list[np.ndarray] = []
+        self._clock = 0
         self._pinned_blocks = 0  # pool slots the pinned tiles hold (at most)
         self._geometry: list[tuple[float, float, float, int, int, int, int]] = []  # s, h, origin, nu, nv, nbu, table offset
         self.slots = np.full(0, MISSING, np.int32)
@@ -136,6 +143,12 @@ class LazyPyramid:
             size += nbu * nbv
         if len(tables) > 1:
             self.slots = np.concatenate(tables)
+            grid = [(-(-g[3] // self._side(k)), -(-g[4] // self._side(k))) for k, g in enumerate(self._geometry)]
+            self._tiles_across = np.array([across for across, _ in grid], np.int64)
+            self._tile_offset = np.cumsum([0] + [across * down for across, down in grid])
+            grown = int(self._tile_offset[-1]) - self._used.size
+            self._used = np.concatenate([self._used, np.zeros(grown, np.int64)])
+            self._pinned = np.concatenate([self._pinned, np.zeros(grown, bool)])
 
     def _cells(self, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
         """The float64 values (r or r²) of cells [r0, r1) x [c0, c1)."""
@@ -143,12 +156,12 @@ class LazyPyramid:
         self.cells_read += values.size
         return values
 
-    def _cached_cells(self, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+    def _cached_cells(self, r0: int, r1: int, c0: int, c1: int, out: np.ndarray | None = None) -> np.ndarray:
         """:meth:`_cells` assembled from :data:`CELL_BLOCK`-square blocks of the source kept in an LRU
         cache of :data:`CELL_CACHE_BYTES` (the fine Gaussians of a stream return to the same cells, and
-        a windowed file decompresses a window on every read): the same values."""
+        a windowed file decompresses a window on every read): the same values, into ``out`` if given."""
         b = CELL_BLOCK
-        out = np.empty((r1 - r0, c1 - c0))
+        out = np.empty((r1 - r0, c1 - c0)) if out is None else out
         for br in range(r0 // b, (r1 - 1) // b + 1):
             for bc in range(c0 // b, (c1 - 1) // b + 1):
                 block = self._cell_blocks.get((br, bc))
@@ -282,18 +295,44 @@ class LazyPyramid:
             self._insert(*key, padded)
 
     def _make_room(self, n: int) -> None:
-        """Free ``n`` slots, evicting the least recently used tiles that are not pinned."""
+        """Free ``n`` slots, evicting the least recently used tiles that are not pinned (and a
+        64th of the pool more, so that a stream past the cache's size sorts its tiles once per
+        many builds, not once per build)."""
         if len(self._free) >= n:
             return
-        for key in list(self._tiles):
-            if key in self._pinned:
+        keys = list(self._tiles)
+        ids = self._tile_ids(*np.array(keys, np.int64).reshape(-1, 3).T)
+        for i in np.argsort(self._used[ids], kind="stable").tolist():
+            if self._pinned[ids[i]]:
                 continue
-            table = self._tiles.pop(key)
+            table = self._tiles.pop(keys[i])
             self._free.extend(self.slots[table].tolist())
             self.slots[table] = MISSING
-            if len(self._free) >= n:
+            if len(self._free) >= n + self.n_slots // 64:
                 return
-        raise MemoryError(f"LazyPyramid: a cache of {self.pool.nbytes / 2**20:.0f} MiB cannot hold the tiles one batch needs")
+        if len(self._free) < n:
+            raise MemoryError(f"LazyPyramid: a cache of {self.pool.nbytes / 2**20:.0f} MiB cannot hold the tiles one batch needs")
+
+    def _tile_ids(self, k: np.ndarray, tv: np.ndarray, tu: np.ndarray) -> np.ndarray:
+        """Ids of tiles (k, tv, tu) (arrays): level k's first tile's id plus tv · tiles per row + tu."""
+        return self._tile_offset[k] + tv * self._tiles_across[k] + tu
+
+    def _pin(self, ids: np.ndarray, blocks: np.ndarray) -> None:
+        """Mark the built tiles ``ids`` (:meth:`_tile_ids`) of ``blocks`` kernel blocks each used now and
+        needed by the batch: not evicted until :meth:`_unpin`."""
+        fresh = ~self._pinned[ids]
+        self._pinned[ids] = True
+        self._pinned_ids.append(ids)
+        self._pinned_blocks += int(blocks[fresh].sum())
+        self._used[ids] = self._clock
+        self._clock += 1
+
+    def _unpin(self) -> None:
+        """No tile pinned (:meth:`_pin`)."""
+        if self._pinned_ids:
+            self._pinned[np.concatenate(self._pinned_ids)] = False
+        self._pinned_ids = []
+        self._pinned_blocks = 0
 
     def tile(self, k: int, tv: int, tu: int) -> np.ndarray:
         """Positions in :attr:`slots` of tile (tv, tu) of level k's blocks, built if missing; marks it recently used."""
@@ -303,7 +342,8 @@ class LazyPyramid:
             if table is None:
                 self._prepare(k, tv, tu)
                 table = self._tiles[key]
-            self._tiles.move_to_end(key)
+            self._used[self._tile_ids(k, tv, tu)] = self._clock
+            self._clock += 1
             return table
 
     def window(self, k: int, j0: int, j1: int, i0: int, i1: int) -> np.ndarray:
@@ -358,78 +398,64 @@ class LazyPyramid:
                 self._fine(np.concatenate([order[surely], coarse[counts[coarse] == -1]]), uc, vc, cuu, cuv, cvv, out, counts)
         return out, counts
 
-    def _tiled(self, values, frame, todo, uc, vc, cuu, cuv, cvv, out, counts) -> None:
+    def _tiled(self, values, frames, todo, uc, vc, cuu, cuv, cvv, out, counts) -> None:
         """Integrals ``todo`` (kernel order) with their tiles built, widening the plan for any whose
-        look-ups found a block missing (NaN); ``values``/``frame``: the cells for Gaussians finer than
+        look-ups found a block missing (NaN); ``values``/``frames``: the cells for Gaussians finer than
         level 0 (:func:`~tracker.integrate.scalespace._window`)."""
         with _threads(_threads_for(todo.size)):
             for widen in (0, 1, 2):
                 if not todo.size:
                     break
-                self._run(values, frame, todo, uc, vc, cuu, cuv, cvv, widen, out, counts)
+                self._run(values, frames, todo, uc, vc, cuu, cuv, cvv, widen, out, counts)
                 todo = todo[np.isnan(out[todo]) & (counts[todo] >= 0)]
         if todo.size:
             raise RuntimeError(f"LazyPyramid: {todo.size} integrals still miss tiles after widening the plan")
 
     def _fine(self, idx: np.ndarray, uc, vc, cuu, cuv, cvv, out, counts) -> None:
         """Integrals ``idx``, which the kernel takes as finer than level 0 (they read cells, no tiles),
-        smoothed from windows of the source (:meth:`_fine_windows`)."""
-        p = self.packed()
-        for values, frame, group in self._fine_windows(idx, uc, vc, cuu, cuv, cvv):
-            with _threads(_threads_for(group.size)):
-                ss._kernel(values, frame, ss.PHI_TABLE, p.coef, self.slots, p.scale, p.step, p.u0, p.v0, p.nu, p.nv, p.offset,
-                           uc, vc, cuu, cuv, cvv, group, out, counts, nb.get_num_threads())
-
-    def _fine_windows(self, idx: np.ndarray, uc, vc, cuu, cuv, cvv):
-        """(values, frame, Gaussians) per block of :data:`FINE_BLOCK` cells of the means of the Gaussians
-        ``idx`` (finer than level 0), each with the source's cells that its Gaussians' on-the-fly
-        smoothing reads (:func:`~tracker.integrate.scalespace._window`: 5 σ_minor around rule points
-        within GH_SPAN σ_major of the mean), so they are the numbers of the whole field."""
+        smoothed from windows of the source (:meth:`_fine_windows`), all in one kernel call."""
         if not idx.size:
             return
-        h, w = self.shape
+        values, frames, order, which = self._fine_windows(idx, uc, vc, cuu, cuv, cvv)
+        p = self.packed()
+        with _threads(_threads_for(idx.size)):
+            ss._kernel(values, frames, which, ss.PHI_TABLE, p.coef, self.slots, p.scale, p.step, p.u0, p.v0, p.nu, p.nv, p.offset,
+                       uc, vc, cuu, cuv, cvv, order, out, counts, nb.get_num_threads())
+
+    def _fine_windows(self, idx: np.ndarray, uc, vc, cuu, cuv, cvv) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The Gaussians ``idx`` (finer than level 0) grouped by block of :data:`FINE_BLOCK` cells of
+        their means, each group with the source's cells that its Gaussians' on-the-fly smoothing reads
+        (:func:`~tracker.integrate.scalespace._window`: 5 σ_minor around rule points within GH_SPAN
+        σ_major of the mean), so they are the numbers of the whole field: (values, frames, order,
+        which), the windows stacked (:func:`~tracker.integrate.scalespace.stacked_frames`), the
+        Gaussians in group order and the frame of each."""
         a, b, c = cuu[idx], cuv[idx], cvv[idx]
         m, dd = 0.5 * (a + c), 0.5 * (a - c)
         rad = np.sqrt(dd * dd + b * b)
         reach = GH_SPAN * np.sqrt(m + rad) + 5.0 * np.sqrt(np.maximum(m - rad, 0.0)) + 3.0
-        for group, (r0, r1, c0, c1) in window_groups(uc[idx], vc[idx], reach, reach, self.shape, FINE_BLOCK):
-            values = self._cached_cells(r0, r1, c0, c1) if r1 > r0 and c1 > c0 else np.zeros((1, 1))
-            yield values, np.array([r0, c0, h, w], np.int64), idx[group]
+        order, which, bounds = window_groups(uc[idx], vc[idx], reach, reach, self.shape, FINE_BLOCK)
+        values, frames, views = ss.stacked_frames(bounds, self.shape)
+        for view, (r0, r1, c0, c1) in zip(views, bounds.tolist(), strict=True):
+            if r1 > r0 and c1 > c0:
+                self._cached_cells(r0, r1, c0, c1, view)
+        return values, frames, idx[order], which
 
     def _tiles_of(self, idx: np.ndarray, uc, vc, cuu, cuv, cvv, widen: int) -> np.ndarray:
-        """Keys k << 40 | tv << 20 | tu of the tiles the Gaussians ``idx`` read (their level ± ``widen``)."""
-        a, b, c = cuu[idx], cuv[idx], cvv[idx]
-        m, dd = 0.5 * (a + c), 0.5 * (a - c)
-        rad = np.sqrt(dd * dd + b * b)
-        lam1, lam2 = m + rad, np.maximum(m - rad, 0.0)
-        fine = lam2 < (ss.S0 * (1.0 - BORDER)) ** 2  # surely finer than level 0 (the kernel's test, with a margin)
-        top = len(self._geometry) - 1
-        with np.errstate(divide="ignore"):
-            k0 = np.floor(np.log(np.sqrt(lam2) / ss.S0) / np.log(ss.RATIO) + 1e-9)
-        k0 = np.clip(np.where(fine, 0, k0), 0, top).astype(np.int64)
-        scale = np.array([g[0] for g in self._geometry])
-        keys = []
-        for dk in range(-widen, widen + 1):
-            k = np.clip(k0 + dk, 0, top)
-            s = scale[k]
-            reach = GH_SPAN * (1 + widen) * (np.sqrt(np.maximum(lam1 - s * s, 0.0)) + np.sqrt(np.maximum(lam2 - s * s, 0.0)))
-            for lv in np.unique(k[~fine]):
-                sel = (k == lv) & ~fine
-                _, hh, origin, nu, nv = self._geometry[lv][:5]
-                r = reach[sel] + 3 * hh
-                side = self._side(int(lv))
-                lo_u = np.clip(np.floor((uc[idx][sel] - r - origin) / hh) - 2, 0, nu - 1).astype(np.int64) // side
-                hi_u = np.clip(np.floor((uc[idx][sel] + r - origin) / hh) + 3, 0, nu - 1).astype(np.int64) // side
-                lo_v = np.clip(np.floor((vc[idx][sel] - r - origin) / hh) - 2, 0, nv - 1).astype(np.int64) // side
-                hi_v = np.clip(np.floor((vc[idx][sel] + r - origin) / hh) + 3, 0, nv - 1).astype(np.int64) // side
-                keys.append(_tile_keys(int(lv), lo_u, hi_u, lo_v, hi_v))
-        return np.unique(np.concatenate(keys)) if keys else np.zeros(0, np.int64)
+        """Keys k << 40 | tv << 20 | tu of the tiles the Gaussians ``idx`` read (their level ± ``widen``),
+        sorted, each once (:func:`_plan`)."""
+        g = self._geometry
+        geometry = np.array([(x[0], x[1], x[2], x[3], x[4], self._side(k)) for k, x in enumerate(g)], np.float64)
+        keys = _plan(uc, vc, cuu, cuv, cvv, idx, geometry, widen, (ss.S0 * (1.0 - BORDER)) ** 2)
+        return np.unique(keys)
 
-    def _run(self, field, frame, todo, uc, vc, cuu, cuv, cvv, widen, out, counts) -> None:
+    def _run(self, field, frames, todo, uc, vc, cuu, cuv, cvv, widen, out, counts) -> None:
         """Integrals ``todo`` (in kernel order), in chunks whose tiles fit half the pool at once; ``field``
-        and ``frame``: the cells fine Gaussians read (:func:`~tracker.integrate.scalespace._window`)."""
+        and ``frames``: the cells fine Gaussians read (:func:`~tracker.integrate.scalespace._window`)."""
         room = self.n_slots // 2
-        blocks = np.array([self.level_blocks(k) ** 2 for k in range(len(self._geometry))])
+        side = np.array([self.level_blocks(k) for k in range(len(self._geometry))], np.int64)  # blocks per tile side
+        blocks = side**2
+        toff = np.array([g[6] for g in self._geometry], np.int64)
+        nbu = np.array([g[5] for g in self._geometry], np.int64)
         stack = [todo]
         while stack:
             chunk = stack.pop()
@@ -438,21 +464,24 @@ class LazyPyramid:
                 half = chunk.size // 2
                 stack += [chunk[half:], chunk[:half]]
                 continue
-            pins = [(int(t >> 40), int((t >> 20) & 0xFFFFF), int(t & 0xFFFFF)) for t in need]
+            k, tv, tu = need >> 40, (need >> 20) & 0xFFFFF, need & 0xFFFFF
+            # a tile is built when its first block is (they are put in and evicted together)
+            built = self.slots[toff[k] + tv * side[k] * nbu[k] + tu * side[k]] != MISSING
+            ids = self._tile_ids(k, tv, tu)
             try:
-                self._build_on_workers(pins)
-                for key in pins:
+                # The tiles already built are pinned first, so building the others cannot evict them.
+                self._pin(ids[built], blocks[k[built]])
+                missing = [(int(a), int(b), int(c)) for a, b, c in zip(k[~built], tv[~built], tu[~built], strict=True)]
+                self._build_on_workers(missing)
+                for key, i in zip(missing, ids[~built], strict=True):
                     self.tile(*key)
-                    if key not in self._pinned:
-                        self._pinned.add(key)
-                        self._pinned_blocks += self.level_blocks(key[0]) ** 2
+                    self._pin(i[None], blocks[key[0] : key[0] + 1])
                 p = self.packed()
                 out[chunk] = np.nan  # stays NaN only if the kernel found a block missing
-                ss._kernel(field, frame, ss.PHI_TABLE, p.coef, self.slots, p.scale, p.step, p.u0, p.v0, p.nu, p.nv, p.offset,
+                ss._kernel(field, frames, ss.ALL_FRAME_0, ss.PHI_TABLE, p.coef, self.slots, p.scale, p.step, p.u0, p.v0, p.nu, p.nv, p.offset,
                            uc, vc, cuu, cuv, cvv, chunk, out, counts, nb.get_num_threads())
             finally:
-                self._pinned.clear()
-                self._pinned_blocks = 0
+                self._unpin()
 
 
 @contextmanager
@@ -473,20 +502,26 @@ def _threads_for(size: int) -> int:
 
 
 def window_groups(u: np.ndarray, v: np.ndarray, reach_u: np.ndarray, reach_v: np.ndarray, shape: tuple[int, int],
-                  block: int) -> Iterator[tuple[np.ndarray, tuple[int, int, int, int]]]:
-    """The points (u, v) (pixels) per ``block``-cell square of the grid they fall in (off-grid ones in
-    the border squares): (their indices, (r0, r1, c0, c1)) with the window of cells, clipped to the
-    (H, W) grid, that covers every point ± its reach (cells [floor(v - reach_v), floor(v + reach_v)] ...)."""
+                  block: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The points (u, v) (pixels) grouped by the ``block``-cell square of the grid they fall in (off-grid
+    ones in the border squares): (order, group, bounds). ``order`` lists the points group by group,
+    ``group[i]`` is the group of point ``order[i]``, and ``bounds[g]`` = (r0, r1, c0, c1) the window of
+    cells, clipped to the (H, W) grid, that covers every point of group g ± its reach (cells
+    [floor(v - reach_v), floor(v + reach_v)] ...)."""
     h, w = shape
     keys = np.clip(np.floor(v / block), -1, h // block + 1) * (w // block + 3) + np.clip(np.floor(u / block), -1, w // block + 1)
     order = np.argsort(keys, kind="stable")
-    starts = np.flatnonzero(np.r_[True, np.diff(keys[order]) != 0])
-    for group in np.split(order, starts[1:]):
-        r0 = int(np.clip(np.floor((v[group] - reach_v[group]).min()), 0, h))
-        r1 = int(np.clip(np.floor((v[group] + reach_v[group]).max()) + 1, r0, h))
-        c0 = int(np.clip(np.floor((u[group] - reach_u[group]).min()), 0, w))
-        c1 = int(np.clip(np.floor((u[group] + reach_u[group]).max()) + 1, c0, w))
-        yield group, (r0, r1, c0, c1)
+    new = np.r_[True, np.diff(keys[order]) != 0] if order.size else np.zeros(0, bool)
+    starts = np.flatnonzero(new)
+    group = np.cumsum(new) - 1
+    uo, vo, ru, rv = u[order], v[order], reach_u[order], reach_v[order]
+    bounds = np.empty((starts.size, 4), np.int64)
+    if starts.size:
+        bounds[:, 0] = np.clip(np.floor(np.minimum.reduceat(vo - rv, starts)), 0, h)
+        bounds[:, 1] = np.clip(np.floor(np.maximum.reduceat(vo + rv, starts)) + 1, bounds[:, 0], h)
+        bounds[:, 2] = np.clip(np.floor(np.minimum.reduceat(uo - ru, starts)), 0, w)
+        bounds[:, 3] = np.clip(np.floor(np.maximum.reduceat(uo + ru, starts)) + 1, bounds[:, 2], w)
+    return order, group, bounds
 
 
 def read_cells(source: CellSource, squared: bool, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
@@ -534,15 +569,51 @@ def cell_tile(source: CellSource, squared: bool, shape: tuple[int, int], k: int,
         return _padded_coefficients(values, nu, nv, side, tv, tu), read[0]
 
 
-def _tile_keys(k: int, lo_u, hi_u, lo_v, hi_v) -> np.ndarray:
-    """All tile keys in the per-Gaussian ranges [lo, hi] on both axes."""
-    nu_t, nv_t = hi_u - lo_u + 1, hi_v - lo_v + 1
-    total = nu_t * nv_t
-    owner = np.repeat(np.arange(total.size), total)
-    local = np.arange(owner.size) - np.repeat(np.cumsum(total) - total, total)
-    tv = lo_v[owner] + local // nu_t[owner]
-    tu = lo_u[owner] + local % nu_t[owner]
-    return (np.int64(k) << 40) | (tv << 20) | tu
+@nb.njit(cache=True, nogil=True)
+def _plan(uc, vc, cuu, cuv, cvv, idx, geometry, widen, fine2):
+    """Keys k << 40 | tv << 20 | tu of the tiles each Gaussian ``idx[i]`` reads at its level ± ``widen``
+    (rows of ``geometry``: s, h, origin, nu, nv, tile side in nodes per level), with repeats: a
+    Gaussian's level from its smaller σ (the kernel's rule), its reach GH_SPAN (1 + widen) times the
+    leftover σ along both axes, plus 3 h and the spline's 2-before, 3-after nodes. Gaussians with
+    λ₂ < ``fine2`` read cells, not tiles. A range equal to the one before it on its level (the
+    kernel's order puts neighbours together) is not emitted again."""
+    top = geometry.shape[0] - 1
+    log_ratio = np.log(ss.RATIO)
+    out = np.empty(max(64, 4 * idx.shape[0]), np.int64)
+    n_out = 0
+    last = np.full((geometry.shape[0], 4), -1, np.int64)
+    for i in range(idx.shape[0]):
+        n = idx[i]
+        a, b, c = cuu[n], cuv[n], cvv[n]
+        m = 0.5 * (a + c)
+        dd = 0.5 * (a - c)
+        rad = np.sqrt(dd * dd + b * b)
+        lam1 = m + rad
+        lam2 = max(m - rad, 0.0)
+        if lam2 < fine2:
+            continue
+        k0 = min(max(int(np.floor(np.log(np.sqrt(lam2) / ss.S0) / log_ratio + 1e-9)), 0), top)
+        for dk in range(-widen, widen + 1):
+            k = min(max(k0 + dk, 0), top)
+            s, h, origin, nu, nv, side = geometry[k]
+            r = GH_SPAN * (1 + widen) * (np.sqrt(max(lam1 - s * s, 0.0)) + np.sqrt(max(lam2 - s * s, 0.0))) + 3 * h
+            lo_u = int(min(max(np.floor((uc[n] - r - origin) / h) - 2, 0.0), nu - 1)) // int(side)
+            hi_u = int(min(max(np.floor((uc[n] + r - origin) / h) + 3, 0.0), nu - 1)) // int(side)
+            lo_v = int(min(max(np.floor((vc[n] - r - origin) / h) - 2, 0.0), nv - 1)) // int(side)
+            hi_v = int(min(max(np.floor((vc[n] + r - origin) / h) + 3, 0.0), nv - 1)) // int(side)
+            if last[k, 0] == lo_u and last[k, 1] == hi_u and last[k, 2] == lo_v and last[k, 3] == hi_v:
+                continue
+            last[k, 0], last[k, 1], last[k, 2], last[k, 3] = lo_u, hi_u, lo_v, hi_v
+            grow = (hi_u - lo_u + 1) * (hi_v - lo_v + 1)
+            if n_out + grow > out.shape[0]:
+                bigger = np.empty(2 * (n_out + grow), np.int64)
+                bigger[:n_out] = out[:n_out]
+                out = bigger
+            for tv in range(lo_v, hi_v + 1):
+                for tu in range(lo_u, hi_u + 1):
+                    out[n_out] = (np.int64(k) << 40) | (np.int64(tv) << 20) | tu
+                    n_out += 1
+    return out[:n_out]
 
 
 @nb.njit(cache=True)

@@ -457,12 +457,12 @@ def _phi(tab, x):
 
 
 @nb.njit(cache=True, inline="always", error_model="numpy", fastmath=FAST)
-def _window(values, frame, tab, u, v, s, wu):
-    """f_s(u, v) exactly: Σ_cells value · ΔΦ_u · ΔΦ_v over the cells within 5 s of the point. ``frame``
-    = (r0, c0, H, W): ``values`` holds the (H, W) grid's cells from row r0, column c0 on, at least those
-    read (the whole grid: (0, 0, H, W)). Inlined into :func:`_one` (one call per rule point otherwise:
+def _window(values, frames, f, tab, u, v, s, wu):
+    """f_s(u, v) exactly: Σ_cells value · ΔΦ_u · ΔΦ_v over the cells within 5 s of the point. Frame
+    ``frames[f]`` = (r0, c0, H, W): ``values`` holds the (H, W) grid's cells from row r0, column c0 on, at
+    least those read (the whole grid: (0, 0, H, W)). Inlined into :func:`_one` (one call per rule point otherwise:
     4-7 % of the sub-cell Gaussians' time; the same numbers bit for bit)."""
-    r0, c0, h, w = frame[0], frame[1], frame[2], frame[3]
+    r0, c0, h, w = frames[f, 0], frames[f, 1], frames[f, 2], frames[f, 3]
     reach = 5.0 * s
     # ceil - 1: a point on a cell edge also weighs the cell that ends there (reach may round to 0).
     i0 = max(int(np.ceil(u - reach)) - 1, 0)
@@ -494,7 +494,7 @@ def _window(values, frame, tab, u, v, s, wu):
 
 
 @nb.njit(cache=True, error_model="numpy", fastmath=FAST)
-def _one(values, frame, tab, coef, slots, scale, step, u0, v0, nu, nv, offset, uc, vc, cuu, cuv, cvv, xs1, ws1, xs2, ws2, wu):
+def _one(values, frames, f, tab, coef, slots, scale, step, u0, v0, nu, nv, offset, uc, vc, cuu, cuv, cvv, xs1, ws1, xs2, ws2, wu):
     """∫ G r for one Gaussian in pixel units (mean (uc, vc), covariance [[cuu, cuv], [cuv, cvv]] cells²);
     ``slots`` and ``offset``: where each level's blocks are (see :func:`_spline_at`).
 
@@ -508,7 +508,7 @@ def _one(values, frame, tab, coef, slots, scale, step, u0, v0, nu, nv, offset, u
     e1u = np.cos(th)
     e1v = np.sin(th)
     if lam2 < scale[0] * scale[0]:
-        if frame[2] == 0:  # NO_CELLS: the caller smooths it from the cells (lazy.LazyPyramid._fine)
+        if frames[f, 2] == 0:  # NO_CELLS: the caller smooths it from the cells (lazy.LazyPyramid._fine)
             return np.nan, -1
         # Finer than the pyramid: smooth at s = the smaller σ exactly, average along the major axis.
         s = np.sqrt(lam2)
@@ -516,7 +516,7 @@ def _one(values, frame, tab, coef, slots, scale, step, u0, v0, nu, nv, offset, u
         acc = 0.0
         for i in range(n1):
             a = xs1[i] * s
-            acc += ws1[i] * _window(values, frame, tab, uc + a * e1u, vc + a * e1v, s, wu)
+            acc += ws1[i] * _window(values, frames, f, tab, uc + a * e1u, vc + a * e1v, s, wu)
         return acc, n1
     k = int(np.floor(np.log(np.sqrt(lam2) / scale[0]) / np.log(RATIO) + 1e-9))
     k = min(max(k, 0), scale.shape[0] - 1)
@@ -538,9 +538,12 @@ def _one(values, frame, tab, coef, slots, scale, step, u0, v0, nu, nv, offset, u
 
 
 @nb.njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
-def _kernel(values, frame, tab, coef, slots, scale, step, u0, v0, nu, nv, offset, uc, vc, cuu, cuv, cvv, order, out, counts, n_threads):
+def _kernel(values, frames, which, tab, coef, slots, scale, step, u0, v0, nu, nv, offset, uc, vc, cuu, cuv, cvv, order, out, counts,
+            n_threads):
     """Gaussian ``order[i]`` for i = 0..N-1, in 256-Gaussian chunks; results go to its own index.
-    ``values`` and ``frame``: the cells that Gaussians finer than the pyramid read (see :func:`_window`).
+    ``values`` and ``frames``: the cells that Gaussians finer than the pyramid read (see :func:`_window`),
+    Gaussian ``order[i]`` through ``frames[which[i]]`` (``which`` empty: every one through ``frames[0]``).
+    Several windows of cells can so share one call, stacked in the rows of ``values`` (:func:`stacked_frames`).
 
     Each chunk first copies its Gaussians out of the inputs (reading them through ``order`` inside
     the loop costs 20 % more: five scattered reads per Gaussian)."""
@@ -571,7 +574,7 @@ def _kernel(values, frame, tab, coef, slots, scale, step, u0, v0, nu, nv, offset
         for i in range(lo, hi):
             r = g[i - lo]
             out[order[i]], counts[order[i]] = _one(
-                values, frame, tab, coef, slots, scale, step, u0, v0, nu, nv, offset, r[0], r[1], r[2], r[3], r[4], xs1, ws1, xs2, ws2, wu
+                values, frames, which[i] if which.shape[0] else 0, tab, coef, slots, scale, step, u0, v0, nu, nv, offset, r[0], r[1], r[2], r[3], r[4], xs1, ws1, xs2, ws2, wu
             )
 
 
@@ -637,7 +640,7 @@ def integrate_pixels(
     out = np.empty(n)
     counts = np.empty(n, dtype=np.int64)
     slots, offset = pyr.slots(p)
-    args = (pyr.field, whole_frame(pyr.field), PHI_TABLE, p.coef, slots, p.scale, p.step, p.u0, p.v0, p.nu, p.nv, offset)
+    args = (pyr.field, whole_frame(pyr.field), ALL_FRAME_0, PHI_TABLE, p.coef, slots, p.scale, p.step, p.u0, p.v0, p.nu, p.nv, offset)
     _kernel(*args, uc, vc, cuu, cuv, cvv, np.argsort(keys), out, counts, nb.get_num_threads())
     return out, counts
 
@@ -676,7 +679,7 @@ def integrate_small(
     out = np.empty(n)
     counts = np.empty(n, dtype=np.int64)
     slots, offset = pyr.slots(p)
-    args = (pyr.field, whole_frame(pyr.field), PHI_TABLE, p.coef, slots, p.scale, p.step, p.u0, p.v0, p.nu, p.nv, offset)
+    args = (pyr.field, whole_frame(pyr.field), ALL_FRAME_0, PHI_TABLE, p.coef, slots, p.scale, p.step, p.u0, p.v0, p.nu, p.nv, offset)
     _kernel(*args, px[0], px[1], px[2], px[3], px[4], np.arange(n), out, counts, nb.get_num_threads())
     if counts.min() <= 0 or not np.isfinite(out).all():
         return None
@@ -712,13 +715,34 @@ def _prepare(means, covs, c, f, dx, dy, w, h, max_rho, max_spread, px):
     return top
 
 
-NO_CELLS = np.zeros(4, np.int64)
-"""The frame of a kernel call given no cells: Gaussians finer than the pyramid return (NaN, -1)."""
+NO_CELLS = np.zeros((1, 4), np.int64)
+"""The frames of a kernel call given no cells: Gaussians finer than the pyramid return (NaN, -1)."""
+ALL_FRAME_0 = np.zeros(0, np.int64)
+"""The kernel's ``which`` when every Gaussian reads its cells through the first frame."""
 
 
 def whole_frame(values: np.ndarray) -> np.ndarray:
-    """The :func:`_window` frame of a field that holds the whole grid."""
-    return np.array([0, 0, values.shape[0], values.shape[1]], np.int64)
+    """The kernel's frames (one :func:`_window` frame) of a field that holds the whole grid."""
+    return np.array([[0, 0, values.shape[0], values.shape[1]]], np.int64)
+
+
+def stacked_frames(bounds: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+    """Room for windows of cells of an (H, W) grid, window i the cells [r0, r1) x [c0, c1) of
+    ``bounds[i]``, stacked in the rows of one float64 array as wide as the widest (zeros beside the
+    narrower ones), with a :func:`_window` frame each: (values, frames, views), ``views[i]`` the part
+    of ``values`` that window i's cells go to. Frame i's first row is r0 less the row where window i
+    starts in the stack, so ``values[j - r0, i - c0]`` is window i's cell (j, i): one :func:`_kernel`
+    call serves them all."""
+    heights = bounds[:, 1] - bounds[:, 0]
+    widths = bounds[:, 3] - bounds[:, 2]
+    starts = np.cumsum(heights) - heights
+    values = np.zeros((max(int(heights.sum()), 1), max(int(widths.max(initial=0)), 1)))
+    frames = np.empty((bounds.shape[0], 4), np.int64)
+    frames[:, 0] = bounds[:, 0] - starts
+    frames[:, 1] = bounds[:, 2]
+    frames[:, 2:] = shape
+    views = [values[a : a + hh, :ww] for a, hh, ww in zip(starts.tolist(), heights.tolist(), widths.tolist(), strict=True)]
+    return values, frames, views
 
 
 ORDER_TILE = 32

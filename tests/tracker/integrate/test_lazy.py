@@ -52,7 +52,7 @@ def _whole(field: np.ndarray, px) -> tuple[np.ndarray, np.ndarray]:
     p = pyr.levels(float(smin.max()))
     out, counts = np.empty(n), np.empty(n, np.int64)
     slots, offset = pyr.slots(p)
-    scalespace._kernel(pyr.field, scalespace.whole_frame(pyr.field), scalespace.PHI_TABLE, p.coef, slots, p.scale, p.step, p.u0, p.v0,
+    scalespace._kernel(pyr.field, scalespace.whole_frame(pyr.field), scalespace.ALL_FRAME_0, scalespace.PHI_TABLE, p.coef, slots, p.scale, p.step, p.u0, p.v0,
                        p.nu, p.nv, offset, *px, np.argsort(keys), out, counts, 1)
     return out, counts
 
@@ -228,3 +228,85 @@ def test_tile_client_reaches_the_priors_lazy_pyramids(monkeypatch) -> None:
     with lazy.tile_client(sentinel):
         assert lazy.lazy_pyramid(ROUGH, False).client is sentinel
     assert lazy.lazy_pyramid(ROUGH, False).client is None
+
+
+def planned_tiles(pyr: lazy.LazyPyramid, px, widen: int) -> set[int]:
+    """The tiles a batch reads, by the formula in numpy (the oracle of the compiled planner): each
+    Gaussian's level (from its smaller σ) ± ``widen``, its reach GH_SPAN (1 + widen) leftover σ
+    along both axes plus 3 h, and the spline's 2 nodes before and 3 after, in tiles."""
+    uc, vc, cuu, cuv, cvv = px
+    m, dd = 0.5 * (cuu + cvv), 0.5 * (cuu - cvv)
+    rad = np.sqrt(dd * dd + cuv * cuv)
+    lam1, lam2 = m + rad, np.maximum(m - rad, 0.0)
+    coarse = lam2 >= (scalespace.S0 * (1.0 - lazy.BORDER)) ** 2
+    top = pyr.levels_built() - 1
+    keys: set[int] = set()
+    for n in np.flatnonzero(coarse):
+        k0 = int(np.clip(np.floor(np.log(np.sqrt(lam2[n]) / scalespace.S0) / np.log(scalespace.RATIO) + 1e-9), 0, top))
+        for k in {int(np.clip(k0 + dk, 0, top)) for dk in range(-widen, widen + 1)}:
+            s, h, origin, nu, nv = scalespace.lattice(k, pyr.shape)
+            r = lazy.GH_SPAN * (1 + widen) * (np.sqrt(max(lam1[n] - s * s, 0.0)) + np.sqrt(max(lam2[n] - s * s, 0.0))) + 3 * h
+            side = pyr.level_blocks(k) * scalespace.TILE
+            span = [int(np.clip(np.floor((x + sign * r - origin) / h) + pad, 0, top_node)) // side
+                    for x, top_node in ((uc[n], nu - 1), (vc[n], nv - 1)) for sign, pad in ((-1, -2), (1, 3))]
+            keys |= {k << 40 | tv << 20 | tu for tv in range(span[2], span[3] + 1) for tu in range(span[0], span[1] + 1)}
+    return keys
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 10_000), widen=st.integers(0, 2), blocks=st.sampled_from([1, 2, 8]))
+def test_the_compiled_plan_lists_the_tiles_of_the_formula(seed, widen, blocks) -> None:
+    pyr = lazy.LazyPyramid(np.zeros((700, 900)), blocks=blocks)
+    px = pixel_batch(pyr.shape, 60, seed=seed, smallest=0.5, largest=40.0)
+    order = np.argsort(px[0])  # neighbours together, as the kernel's order puts them (repeats skipped)
+    pyr._grow(40.0)
+    got = pyr._tiles_of(order, *px, widen)
+    assert np.all(np.diff(got) > 0)
+    assert set(got.tolist()) == planned_tiles(pyr, px, widen)
+
+
+def test_eviction_takes_the_least_recently_used_tiles_and_never_a_pinned_one() -> None:
+    field = rough_field(seed=3, shape=(400, 400))
+    pyr = lazy.LazyPyramid(field, blocks=1, cache_bytes=7 * 4 * scalespace.BLOCK)  # 6 one-block tiles
+    assert pyr.n_slots == 6
+
+    def use(u: float, v: float) -> set:
+        c = np.array([4.0])
+        before = set(pyr._tiles)
+        pyr.integrate_pixels(np.array([u]), np.array([v]), c, np.zeros(1), c)
+        return set(pyr._tiles) - before
+
+    _, h, origin = scalespace.lattice(4, pyr.shape)[:3]  # σ = 2 cells: level 4, 32-node tiles
+
+    def centre(t: int) -> float:
+        return origin + h * (32 * t + 16.3)
+
+    first, second = use(centre(2), centre(2)), use(centre(6), centre(6))
+    assert len(first) == len(second) == 1
+    use(centre(2), centre(2))  # the first area again: now the second is the least recently used
+    for t in range(5):
+        assert len(use(centre(t), centre(9))) == 1
+    assert not second <= set(pyr._tiles) and first <= set(pyr._tiles)
+    # a batch whose tiles would need the slots of pinned ones is refused, and nothing pinned is evicted
+    pinned = set(pyr._tiles)
+    pyr._pin(pyr._tile_ids(*np.array(list(pinned)).T), np.ones(len(pinned), np.int64))
+    with pytest.raises(MemoryError, match="cannot hold"):
+        use(centre(8), centre(2))
+    assert pinned <= set(pyr._tiles)
+    pyr._unpin()
+    assert not pyr._pinned.any() and pyr._pinned_blocks == 0
+
+
+def test_stacked_windows_read_each_windows_own_cells() -> None:
+    """One kernel call over many windows: frame i maps window i's cells into the stack."""
+    rng = np.random.default_rng(0)
+    grid = rng.uniform(size=(50, 60))
+    bounds = np.array([[3, 10, 5, 30], [20, 21, 0, 60], [40, 50, 55, 60], [7, 7, 2, 2]], np.int64)
+    values, frames, views = scalespace.stacked_frames(bounds, grid.shape)
+    for view, (r0, r1, c0, c1) in zip(views, bounds.tolist(), strict=True):
+        view[...] = grid[r0:r1, c0:c1]
+    for (r0, r1, c0, c1), frame in zip(bounds.tolist(), frames, strict=True):
+        assert tuple(frame[2:]) == grid.shape
+        for j in range(r0, r1):
+            for i in range(c0, c1):
+                assert values[j - frame[0], i - frame[1]] == grid[j, i]
