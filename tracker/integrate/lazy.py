@@ -63,6 +63,9 @@ kernel's fine/pyramid test (its rounding): it is planned both ways."""
 FINE_BLOCK = 1024
 """Cells per side of the blocks of means whose Gaussians finer than level 0 read one window of the
 source together (without an in-memory field): the window spans the block's Gaussians, not the block."""
+STACK_BYTES = 16 << 20
+"""Bytes of the windows of cells stacked for one kernel call of fine Gaussians: below glibc's largest
+mmap threshold (32 MiB), so the stack reuses heap pages rather than faulting fresh ones on every call."""
 CELL_BLOCK = 256
 """Cells per side of the source blocks cached for the fine Gaussians (without a field)."""
 CELL_CACHE_BYTES = 256 << 20
@@ -413,32 +416,39 @@ class LazyPyramid:
 
     def _fine(self, idx: np.ndarray, uc, vc, cuu, cuv, cvv, out, counts) -> None:
         """Integrals ``idx``, which the kernel takes as finer than level 0 (they read cells, no tiles),
-        smoothed from windows of the source (:meth:`_fine_windows`), all in one kernel call."""
-        if not idx.size:
-            return
-        values, frames, order, which = self._fine_windows(idx, uc, vc, cuu, cuv, cvv)
+        smoothed from windows of the source (:meth:`_fine_windows`), one kernel call per stack of windows."""
         p = self.packed()
-        with _threads(_threads_for(idx.size)):
-            ss._kernel(values, frames, which, ss.PHI_TABLE, p.coef, self.slots, p.scale, p.step, p.u0, p.v0, p.nu, p.nv, p.offset,
-                       uc, vc, cuu, cuv, cvv, order, out, counts, nb.get_num_threads())
+        for values, frames, order, which in self._fine_windows(idx, uc, vc, cuu, cuv, cvv):
+            with _threads(_threads_for(order.size)):
+                ss._kernel(values, frames, which, ss.PHI_TABLE, p.coef, self.slots, p.scale, p.step, p.u0, p.v0, p.nu, p.nv,
+                           p.offset, uc, vc, cuu, cuv, cvv, order, out, counts, nb.get_num_threads())
 
-    def _fine_windows(self, idx: np.ndarray, uc, vc, cuu, cuv, cvv) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def _fine_windows(self, idx: np.ndarray, uc, vc, cuu, cuv, cvv) -> Iterator[tuple[np.ndarray, ...]]:
         """The Gaussians ``idx`` (finer than level 0) grouped by block of :data:`FINE_BLOCK` cells of
         their means, each group with the source's cells that its Gaussians' on-the-fly smoothing reads
         (:func:`~tracker.integrate.scalespace._window`: 5 σ_minor around rule points within GH_SPAN
-        σ_major of the mean), so they are the numbers of the whole field: (values, frames, order,
-        which), the windows stacked (:func:`~tracker.integrate.scalespace.stacked_frames`), the
-        Gaussians in group order and the frame of each."""
+        σ_major of the mean), so they are the numbers of the whole field. Yields (values, frames,
+        order, which) per run of groups whose windows fit :data:`STACK_BYTES` (or one larger window):
+        their windows stacked (:func:`~tracker.integrate.scalespace.stacked_frames`), their Gaussians
+        in group order and the frame of each."""
+        if not idx.size:
+            return
         a, b, c = cuu[idx], cuv[idx], cvv[idx]
         m, dd = 0.5 * (a + c), 0.5 * (a - c)
         rad = np.sqrt(dd * dd + b * b)
         reach = GH_SPAN * np.sqrt(m + rad) + 5.0 * np.sqrt(np.maximum(m - rad, 0.0)) + 3.0
-        order, which, bounds = window_groups(uc[idx], vc[idx], reach, reach, self.shape, FINE_BLOCK)
-        values, frames, views = ss.stacked_frames(bounds, self.shape)
-        for view, (r0, r1, c0, c1) in zip(views, bounds.tolist(), strict=True):
-            if r1 > r0 and c1 > c0:
-                self._cached_cells(r0, r1, c0, c1, view)
-        return values, frames, idx[order], which
+        order, group, bounds = window_groups(uc[idx], vc[idx], reach, reach, self.shape, FINE_BLOCK)
+        size = 8 * (bounds[:, 1] - bounds[:, 0]) * (bounds[:, 3] - bounds[:, 2])
+        first = np.searchsorted(group, np.arange(bounds.shape[0] + 1))  # each group's first position in order
+        lo = 0
+        while lo < bounds.shape[0]:
+            hi = lo + max(1, int(np.searchsorted(np.cumsum(size[lo:]), STACK_BYTES, side="right")))
+            values, frames, views = ss.stacked_frames(bounds[lo:hi], self.shape)
+            for view, (r0, r1, c0, c1) in zip(views, bounds[lo:hi].tolist(), strict=True):
+                if r1 > r0 and c1 > c0:
+                    self._cached_cells(r0, r1, c0, c1, view)
+            yield values, frames, idx[order[first[lo] : first[hi]]], group[first[lo] : first[hi]] - lo
+            lo = hi
 
     def _tiles_of(self, idx: np.ndarray, uc, vc, cuu, cuv, cvv, widen: int) -> np.ndarray:
         """Keys k << 40 | tv << 20 | tu of the tiles the Gaussians ``idx`` read (their level ± ``widen``),

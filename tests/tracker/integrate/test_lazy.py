@@ -127,13 +127,16 @@ def test_a_source_read_window_by_window_gives_the_same_integrals() -> None:
     np.testing.assert_array_equal(got[counts > 0], want[counts > 0])
 
 
-@pytest.mark.parametrize("cache_blocks", [None, 1])
+@pytest.mark.parametrize(("cache_blocks", "stack_bytes"), [(None, None), (1, None), (None, 1), (None, 1_000_000)])
 @pytest.mark.parametrize("squared", [False, True])
-def test_without_a_field_fine_gaussians_read_windows_of_the_source(squared, cache_blocks, monkeypatch) -> None:
+def test_without_a_field_fine_gaussians_read_windows_of_the_source(squared, cache_blocks, stack_bytes, monkeypatch) -> None:
     """A source that is not an array (a prior read window by window): Gaussians finer than the pyramid
     are smoothed from windows of it (assembled from cached source blocks, evicted when the cache holds
-    one), in several blocks of means, with the whole field's numbers."""
+    one), in several blocks of means, stacked for one kernel call, one per call or a few, with the
+    whole field's numbers."""
     monkeypatch.setattr(lazy, "FINE_BLOCK", 128)
+    if stack_bytes:
+        monkeypatch.setattr(lazy, "STACK_BYTES", stack_bytes)
     if cache_blocks:
         monkeypatch.setattr(lazy, "CELL_CACHE_BYTES", cache_blocks * lazy.CELL_BLOCK**2 * 8)
     tile = rough_field(seed=1, shape=(61, 70))
