@@ -426,17 +426,14 @@ class LazyPyramid:
     def _fine_windows(self, idx: np.ndarray, uc, vc, cuu, cuv, cvv) -> Iterator[tuple[np.ndarray, ...]]:
         """The Gaussians ``idx`` (finer than level 0) grouped by block of :data:`FINE_BLOCK` cells of
         their means, each group with the source's cells that its Gaussians' on-the-fly smoothing reads
-        (:func:`~tracker.integrate.scalespace._window`: 5 σ_minor around rule points within GH_SPAN
-        σ_major of the mean), so they are the numbers of the whole field. Yields (values, frames,
+        (:func:`~tracker.integrate.scalespace.fine_reach`: 5 σ_minor around its rule's points), so
+        they are the numbers of the whole field. Yields (values, frames,
         order, which) per run of groups whose windows fit :data:`STACK_BYTES` (or one larger window):
         their windows stacked (:func:`~tracker.integrate.scalespace.stacked_frames`), their Gaussians
         in group order and the frame of each."""
         if not idx.size:
             return
-        a, b, c = cuu[idx], cuv[idx], cvv[idx]
-        m, dd = 0.5 * (a + c), 0.5 * (a - c)
-        rad = np.sqrt(dd * dd + b * b)
-        reach = GH_SPAN * np.sqrt(m + rad) + 5.0 * np.sqrt(np.maximum(m - rad, 0.0)) + 3.0
+        reach = ss.fine_reach(cuu[idx], cuv[idx], cvv[idx])
         order, group, bounds = window_groups(uc[idx], vc[idx], reach, reach, self.shape, FINE_BLOCK)
         size = 8 * (bounds[:, 1] - bounds[:, 0]) * (bounds[:, 3] - bounds[:, 2])
         first = np.searchsorted(group, np.arange(bounds.shape[0] + 1))  # each group's first position in order

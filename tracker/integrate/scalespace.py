@@ -537,6 +537,33 @@ def _one(values, frames, f, tab, coef, slots, scale, step, u0, v0, nu, nv, offse
     return acc, n1 * n2
 
 
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def fine_reach(cuu, cuv, cvv):
+    """Cells from its mean within which :func:`_one` reads the cells of a Gaussian finer than the
+    pyramid (pixel covariances): its rule's farthest point along the major axis (:func:`_rule`, as
+    :func:`_one` builds it) plus :func:`_window`'s 5 σ_minor, and 2 cells for the window's rounding.
+    Gaussians without a rule (σ_minor 0, or too eccentric) get GH_SPAN σ_major + 3."""
+    xs = np.empty(MAX_POINTS)
+    ws = np.empty(MAX_POINTS)
+    out = np.empty(cuu.shape[0])
+    for n in range(cuu.shape[0]):
+        m = 0.5 * (cuu[n] + cvv[n])
+        dd = 0.5 * (cuu[n] - cvv[n])
+        rad = np.sqrt(dd * dd + cuv[n] * cuv[n])
+        lam1 = m + rad
+        lam2 = max(m - rad, 0.0)
+        s = np.sqrt(lam2)
+        n1 = _rule(np.sqrt(lam1 - lam2) / s, xs, ws) if s > 0.0 else 0
+        if n1 <= 0:
+            out[n] = 5.6 * np.sqrt(lam1) + 5.0 * s + 3.0
+            continue
+        far = 0.0
+        for i in range(n1):
+            far = max(far, abs(xs[i]))
+        out[n] = far * s + 5.0 * s + 2.0
+    return out
+
+
 @nb.njit(cache=True, parallel=True, error_model="numpy", fastmath=FAST)
 def _kernel(values, frames, which, tab, coef, slots, scale, step, u0, v0, nu, nv, offset, uc, vc, cuu, cuv, cvv, order, out, counts,
             n_threads):

@@ -127,14 +127,17 @@ def test_a_source_read_window_by_window_gives_the_same_integrals() -> None:
     np.testing.assert_array_equal(got[counts > 0], want[counts > 0])
 
 
-@pytest.mark.parametrize(("cache_blocks", "stack_bytes"), [(None, None), (1, None), (None, 1), (None, 1_000_000)])
+@pytest.mark.parametrize(("cache_blocks", "stack_bytes", "fine_block"),
+                         [(None, None, 128), (1, None, 128), (None, 1, 128), (None, 1_000_000, 128), (None, None, 1)])
 @pytest.mark.parametrize("squared", [False, True])
-def test_without_a_field_fine_gaussians_read_windows_of_the_source(squared, cache_blocks, stack_bytes, monkeypatch) -> None:
+def test_without_a_field_fine_gaussians_read_windows_of_the_source(squared, cache_blocks, stack_bytes, fine_block,
+                                                                   monkeypatch) -> None:
     """A source that is not an array (a prior read window by window): Gaussians finer than the pyramid
     are smoothed from windows of it (assembled from cached source blocks, evicted when the cache holds
     one), in several blocks of means, stacked for one kernel call, one per call or a few, with the
-    whole field's numbers."""
-    monkeypatch.setattr(lazy, "FINE_BLOCK", 128)
+    whole field's numbers; with one-cell blocks, nearly every window is one Gaussian's own reach
+    (scalespace.fine_reach), stacked between others: any cell read beyond it would be another's."""
+    monkeypatch.setattr(lazy, "FINE_BLOCK", fine_block)
     if stack_bytes:
         monkeypatch.setattr(lazy, "STACK_BYTES", stack_bytes)
     if cache_blocks:
@@ -142,7 +145,7 @@ def test_without_a_field_fine_gaussians_read_windows_of_the_source(squared, cach
     tile = rough_field(seed=1, shape=(61, 70))
     source = Mosaic(tile, (7, 6))
     field = source[0 : source.shape[0], 0 : source.shape[1]]
-    assert field.shape[0] > 1.5 * lazy.FINE_BLOCK and field.shape[1] > 1.5 * lazy.FINE_BLOCK
+    assert field.shape[0] > 1.5 * 128 and field.shape[1] > 1.5 * 128
     px = pixel_batch(field.shape, 3000, seed=3, smallest=0.1, largest=3.0)
     want, want_counts = whole_integrals(field * field if squared else field, px)
     pyr = lazy.LazyPyramid(source, squared, cache_bytes=1 << 24)
