@@ -27,10 +27,12 @@ cell of the prior. Units as in
 
 from __future__ import annotations
 
+import functools
 import threading
 import weakref
 from collections import OrderedDict
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from typing import TYPE_CHECKING, Protocol
 
@@ -72,6 +74,8 @@ CELL_CACHE_BYTES = 256 << 20
 """Bytes of float64 source blocks kept for the fine Gaussians."""
 SERIAL_BELOW = 1024
 """Batches of fewer integrals run on one thread (as the tracker's small integrator calls do)."""
+ROUND = 64
+"""Cell-level tiles built at once on this process's threads (their float32 coefficients, ~270 kB each)."""
 MISSING = 0
 """The pool's slot that the block tables point at for a block not built (or evicted): all NaN, so a
 look-up there gives NaN (the kernel needs no test; the caller builds the tiles and asks again)."""
@@ -279,21 +283,34 @@ class LazyPyramid:
         table = toff + (gbv[keep_v][:, None] * nbu + gbu[keep_u][None, :]).ravel()
         self.slots[table] = slots
         self._tiles[(k, tv, tu)] = table
+        self._used[self._tile_ids(k, tv, tu)] = self._clock  # the most recently used, until its batch pins it
+        self._clock += 1
         self.tiles_built += 1
 
     def _build_on_workers(self, keys: list[tuple[int, int, int]]) -> None:
-        """With a :attr:`client`, the missing cell-level tiles among ``keys`` built on its workers
-        (:func:`cell_tile`), then put into the pool here; the tiles above the cell levels read the pool,
-        so they are built in this process. Without a client: nothing (:meth:`tile` builds each)."""
+        """The missing cell-level tiles among ``keys`` built in parallel (:func:`cell_tile`), then put
+        into the pool here: on the workers of :attr:`client` (``dask.distributed``) if there is one,
+        else on this process's threads (numba's thread count; its kernels release the GIL), in rounds
+        of :data:`ROUND` tiles so their temporaries stay small. The tiles above the cell levels read
+        the pool, so :meth:`tile` builds those in this process."""
         todo = [key for key in keys if key[0] < ss.CELL_LEVELS and key not in self._tiles]
-        if self.client is None or len(todo) < 2:
+        if len(todo) < 2:
             return
-        if self._scattered is None or self._scattered[0] is not self.client:
-            self._scattered = (self.client, self.client.scatter(self.source, broadcast=True))
-        source = self._scattered[1]
-        futures = self.client.map(cell_tile, [source] * len(todo), [self.squared] * len(todo), [self.shape] * len(todo),
-                                  *zip(*todo, strict=True), [self._side(k) for k, _, _ in todo], pure=False)
-        for key, (padded, cells) in zip(todo, self.client.gather(futures), strict=True):
+        if self.client is not None:
+            if self._scattered is None or self._scattered[0] is not self.client:
+                self._scattered = (self.client, self.client.scatter(self.source, broadcast=True))
+            source = self._scattered[1]
+            futures = self.client.map(cell_tile, [source] * len(todo), [self.squared] * len(todo), [self.shape] * len(todo),
+                                      *zip(*todo, strict=True), [self._side(k) for k, _, _ in todo], pure=False)
+            built = zip(todo, self.client.gather(futures), strict=True)
+        elif nb.get_num_threads() > 1:
+            pool = _tile_threads(nb.get_num_threads())
+            built = ((key, tile) for lo in range(0, len(todo), ROUND) for key, tile in zip(
+                todo[lo : lo + ROUND], pool.map(lambda key: cell_tile(self.source, self.squared, self.shape, *key, self._side(key[0])),
+                                                todo[lo : lo + ROUND]), strict=True))
+        else:
+            return
+        for key, (padded, cells) in built:
             self.cells_read += cells
             self._insert(*key, padded)
 
@@ -500,6 +517,12 @@ def _threads(n: int) -> Iterator[None]:
         yield
     finally:
         nb.set_num_threads(before)
+
+
+@functools.cache
+def _tile_threads(n: int) -> ThreadPoolExecutor:
+    """The ``n`` threads the lazy pyramids build their cell-level tiles on (made once, kept)."""
+    return ThreadPoolExecutor(n, thread_name_prefix="lazy-tiles")
 
 
 def _threads_for(size: int) -> int:

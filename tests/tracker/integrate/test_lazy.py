@@ -7,6 +7,7 @@ blocks) with caches small enough to evict.
 
 from __future__ import annotations
 
+import threading
 import warnings
 
 import numba as nb
@@ -217,7 +218,8 @@ def test_cell_tiles_built_on_dask_workers_are_the_same_tiles() -> None:
     source = Mosaic(rough_field(seed=4, shape=(64, 80)), (5, 4))
     px = pixel_batch(source.shape, 2000, seed=8, smallest=0.5, largest=20.0)
     serial = lazy.LazyPyramid(source, blocks=1, cache_bytes=1 << 24)
-    want, want_counts = serial.integrate_pixels(*px)
+    with lazy._threads(1):  # one thread: every tile built by tile(), in this thread
+        want, want_counts = serial.integrate_pixels(*px)
     with get_client(threads=2) as client:
         spread = lazy.LazyPyramid(source, blocks=1, cache_bytes=1 << 24, client=client)
         got, counts = spread.integrate_pixels(*px)
@@ -226,6 +228,33 @@ def test_cell_tiles_built_on_dask_workers_are_the_same_tiles() -> None:
     np.testing.assert_array_equal(counts, want_counts)
     assert spread.tiles_built == serial.tiles_built and spread.cells_read == serial.cells_read
     assert {k for k, _, _ in spread._tiles} & set(range(scalespace.CELL_LEVELS))
+
+
+@pytest.mark.skipif(nb.config.NUMBA_NUM_THREADS < 2, reason="numba has one thread here")
+def test_cell_tiles_built_on_threads_are_the_same_tiles(monkeypatch) -> None:
+    """Without a client, the missing cell-level tiles of a batch are built on the process's threads:
+    the same integrals, tiles and cells read as building them one by one."""
+    source = Mosaic(rough_field(seed=4, shape=(64, 80)), (5, 4))
+    px = pixel_batch(source.shape, 2000, seed=8, smallest=0.5, largest=20.0)
+    serial = lazy.LazyPyramid(source, blocks=1, cache_bytes=1 << 24)
+    with lazy._threads(1):
+        want, want_counts = serial.integrate_pixels(*px)
+    names: list[str] = []
+    build = lazy.cell_tile
+
+    def spy(*args):
+        names.append(threading.current_thread().name)
+        return build(*args)
+
+    monkeypatch.setattr(lazy, "cell_tile", spy)
+    monkeypatch.setattr(lazy, "ROUND", 3)  # several rounds
+    threaded = lazy.LazyPyramid(source, blocks=1, cache_bytes=1 << 24)
+    with lazy._threads(2):
+        got, counts = threaded.integrate_pixels(*px)
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(counts, want_counts)
+    assert threaded.tiles_built == serial.tiles_built and threaded.cells_read == serial.cells_read
+    assert sum(name.startswith("lazy-tiles") for name in names) > 3
 
 
 def test_tile_client_reaches_the_priors_lazy_pyramids(monkeypatch) -> None:
