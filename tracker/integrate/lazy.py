@@ -45,7 +45,7 @@ from tracker.integrate import scalespace as ss
 if TYPE_CHECKING:
     from distributed import Client
 
-__all__ = ["BLOCKS", "CACHE_BYTES", "SIDE", "CellSource", "LazyPyramid", "cell_tile", "lazy_pyramid", "tile_client"]
+__all__ = ["BLOCKS", "CACHE_BYTES", "SIDE", "CellSource", "LazyPyramid", "cell_tiles", "lazy_pyramid", "rectangles", "tile_client"]
 
 BLOCKS = 8
 """Kernel blocks (:data:`~tracker.integrate.scalespace.TILE` nodes) per tile side at levels 0-3; levels
@@ -74,8 +74,11 @@ CELL_CACHE_BYTES = 256 << 20
 """Bytes of float64 source blocks kept for the fine Gaussians."""
 SERIAL_BELOW = 1024
 """Batches of fewer integrals run on one thread (as the tracker's small integrator calls do)."""
-ROUND = 64
-"""Cell-level tiles built at once on this process's threads (their float32 coefficients, ~270 kB each)."""
+ROUND = 16
+"""Rectangles of cell-level tiles built at once on this process's threads."""
+RECTANGLE = 4
+"""Most tiles a side of a rectangle of cell-level tiles built together (:func:`rectangles`): adjacent
+tiles share the cells and margins they read (8 s + 14 h + 2 cells a side, more than a tile at s = 16)."""
 MISSING = 0
 """The pool's slot that the block tables point at for a block not built (or evicted): all NaN, so a
 look-up there gives NaN (the kernel needs no test; the caller builds the tiles and asks again)."""
@@ -259,11 +262,11 @@ class LazyPyramid:
     def _build(self, k: int, tv: int, tu: int) -> None:
         """Coefficients of tile (tv, tu) of level k, into free blocks of the pool."""
         if k < ss.CELL_LEVELS:
-            padded, cells = cell_tile(self.source, self.squared, self.shape, k, tv, tu, self._side(k))
+            (padded,), cells = cell_tiles(self.source, self.squared, self.shape, k, tv, tv, tu, tu, self._side(k))
             self.cells_read += cells
         else:
             nu, nv = self._geometry[k][3:5]
-            padded = _padded_coefficients(lambda *window: self._values(k, *window), nu, nv, self._side(k), tv, tu)
+            (padded,) = _padded_coefficients(lambda *window: self._values(k, *window), nu, nv, self._side(k), tv, tv, tu, tu)
         self._insert(k, tv, tu, padded)
 
     def _insert(self, k: int, tv: int, tu: int, padded: np.ndarray) -> None:
@@ -287,32 +290,33 @@ class LazyPyramid:
         self._clock += 1
         self.tiles_built += 1
 
-    def _build_on_workers(self, keys: list[tuple[int, int, int]]) -> None:
-        """The missing cell-level tiles among ``keys`` built in parallel (:func:`cell_tile`), then put
-        into the pool here: on the workers of :attr:`client` (``dask.distributed``) if there is one,
-        else on this process's threads (numba's thread count; its kernels release the GIL), in rounds
-        of :data:`ROUND` tiles so their temporaries stay small. The tiles above the cell levels read
-        the pool, so :meth:`tile` builds those in this process."""
-        todo = [key for key in keys if key[0] < ss.CELL_LEVELS and key not in self._tiles]
-        if len(todo) < 2:
+    def _build_cell_tiles(self, keys: list[tuple[int, int, int]]) -> None:
+        """The missing cell-level tiles among ``keys``, built by rectangles of adjacent tiles of a level
+        (:func:`rectangles`, at most :data:`RECTANGLE` a side: their cells and margins read once,
+        :func:`cell_tiles`), then put into the pool here: on the workers of :attr:`client`
+        (``dask.distributed``) if there is one, else on this process's threads (numba's thread count;
+        the kernels release the GIL), :data:`ROUND` rectangles at a time so their temporaries stay
+        small. The tiles above the cell levels read the pool, so :meth:`tile` builds those here."""
+        todo = rectangles([key for key in keys if key[0] < ss.CELL_LEVELS and key not in self._tiles], RECTANGLE)
+        if not todo:
             return
+        args = [(self.squared, self.shape, *rect, self._side(rect[0])) for rect in todo]
         if self.client is not None:
             if self._scattered is None or self._scattered[0] is not self.client:
                 self._scattered = (self.client, self.client.scatter(self.source, broadcast=True))
-            source = self._scattered[1]
-            futures = self.client.map(cell_tile, [source] * len(todo), [self.squared] * len(todo), [self.shape] * len(todo),
-                                      *zip(*todo, strict=True), [self._side(k) for k, _, _ in todo], pure=False)
+            futures = self.client.map(cell_tiles, [self._scattered[1]] * len(todo), *zip(*args, strict=True), pure=False)
             built = zip(todo, self.client.gather(futures), strict=True)
-        elif nb.get_num_threads() > 1:
+        elif nb.get_num_threads() > 1 and len(todo) > 1:
             pool = _tile_threads(nb.get_num_threads())
-            built = ((key, tile) for lo in range(0, len(todo), ROUND) for key, tile in zip(
-                todo[lo : lo + ROUND], pool.map(lambda key: cell_tile(self.source, self.squared, self.shape, *key, self._side(key[0])),
-                                                todo[lo : lo + ROUND]), strict=True))
+            built = ((rect, tiles) for lo in range(0, len(todo), ROUND) for rect, tiles in zip(
+                todo[lo : lo + ROUND], pool.map(lambda a: cell_tiles(self.source, *a), args[lo : lo + ROUND]), strict=True))
         else:
-            return
-        for key, (padded, cells) in built:
+            built = ((rect, cell_tiles(self.source, *a)) for rect, a in zip(todo, args, strict=True))
+        for (k, tv0, tv1, tu0, tu1), (tiles, cells) in built:
             self.cells_read += cells
-            self._insert(*key, padded)
+            keys_of = [(k, tv, tu) for tv in range(tv0, tv1 + 1) for tu in range(tu0, tu1 + 1)]
+            for key, padded in zip(keys_of, tiles, strict=True):
+                self._insert(*key, padded)
 
     def _make_room(self, n: int) -> None:
         """Free ``n`` slots, evicting the least recently used tiles that are not pinned (and a
@@ -496,7 +500,7 @@ class LazyPyramid:
                 # The tiles already built are pinned first, so building the others cannot evict them.
                 self._pin(ids[built], blocks[k[built]])
                 missing = [(int(a), int(b), int(c)) for a, b, c in zip(k[~built], tv[~built], tu[~built], strict=True)]
-                self._build_on_workers(missing)
+                self._build_cell_tiles(missing)
                 for key, i in zip(missing, ids[~built], strict=True):
                     self.tile(*key)
                     self._pin(i[None], blocks[key[0] : key[0] + 1])
@@ -560,30 +564,41 @@ def read_cells(source: CellSource, squared: bool, r0: int, r1: int, c0: int, c1:
     return values * values if squared else values
 
 
-def _padded_coefficients(values, nu: int, nv: int, side: int, tv: int, tu: int) -> np.ndarray:
-    """Tile (tv, tu) (``side`` nodes a side) of a level with an (nv, nu) lattice: its cubic B-spline
-    coefficients with the one-before, two-after apron, zeros beyond the lattice (as ``scalespace._tile``),
-    float32 (side + 3)². ``values(j0, j1, i0, i1)`` gives the level's node values on a window."""
-    av, au = tv * side, tu * side
-    # The tile's coefficient nodes with their aprons (av-1 .. av+side+1), within the lattice.
-    r_lo, r_hi = max(av - 1, 0), min(av + side + 2, nv)
-    c_lo, c_hi = max(au - 1, 0), min(au + side + 2, nu)
+def _padded_coefficients(values, nu: int, nv: int, side: int, tv0: int, tv1: int, tu0: int, tu1: int) -> list[np.ndarray]:
+    """Tiles (tv, tu), tv0 <= tv <= tv1, tu0 <= tu <= tu1 (``side`` nodes a side, rows first) of a level
+    with an (nv, nu) lattice: their cubic B-spline coefficients with the one-before, two-after apron,
+    zeros beyond the lattice (as ``scalespace._tile``), float32 (side + 3)² each, from one prefilter
+    pass over the rectangle. ``values(j0, j1, i0, i1)`` gives the level's node values on a window
+    (each node's band and weights are the whole lattice's, so a rectangle's tiles are the numbers of
+    tiles built one by one)."""
+    # The rectangle's coefficient nodes with their aprons, within the lattice.
+    r_lo, r_hi = max(tv0 * side - 1, 0), min((tv1 + 1) * side + 2, nv)
+    c_lo, c_hi = max(tu0 * side - 1, 0), min((tu1 + 1) * side + 2, nu)
     fsv, fwv = ss._fir_weights(r_lo, r_hi, nv)
     fsu, fwu = ss._fir_weights(c_lo, c_hi, nu)
     w_v0, w_u0 = int(fsv[0]), int(fsu[0])
     window = values(w_v0, int(fsv[-1]) + fwv.shape[1], w_u0, int(fsu[-1]) + fwu.shape[1])
     coef = ss._separable(window, fsu - w_u0, fwu, fsv - w_v0, fwv).astype(np.float32)
-    padded = np.zeros((side + 3, side + 3), np.float32)
-    padded[r_lo - av + 1 : r_hi - av + 1, c_lo - au + 1 : c_hi - au + 1] = coef
-    return padded
+    tiles = []
+    for tv in range(tv0, tv1 + 1):
+        av = tv * side
+        a0, a1 = max(av - 1, 0), min(av + side + 2, nv)
+        for tu in range(tu0, tu1 + 1):
+            au = tu * side
+            b0, b1 = max(au - 1, 0), min(au + side + 2, nu)
+            padded = np.zeros((side + 3, side + 3), np.float32)
+            padded[a0 - av + 1 : a1 - av + 1, b0 - au + 1 : b1 - au + 1] = coef[a0 - r_lo : a1 - r_lo, b0 - c_lo : b1 - c_lo]
+            tiles.append(padded)
+    return tiles
 
 
-def cell_tile(source: CellSource, squared: bool, shape: tuple[int, int], k: int, tv: int, tu: int, side: int
-              ) -> tuple[np.ndarray, int]:
-    """Tile (tv, tu) of a cell level k < CELL_LEVELS of the lazy pyramid of ``source`` (r, or r² when
-    ``squared``) on an (H, W) grid, from the source's cells alone: (:func:`_padded_coefficients`, cells
-    read). A pure function of its arguments, so a Dask worker can build it (a windowed density is
-    picklable: the worker reopens the file)."""
+def cell_tiles(source: CellSource, squared: bool, shape: tuple[int, int], k: int, tv0: int, tv1: int, tu0: int, tu1: int,
+               side: int) -> tuple[list[np.ndarray], int]:
+    """Tiles (tv, tu), tv0 <= tv <= tv1, tu0 <= tu <= tu1 (rows first) of a cell level k < CELL_LEVELS of
+    the lazy pyramid of ``source`` (r, or r² when ``squared``) on an (H, W) grid, from the source's cells
+    alone, read once for the rectangle: (:func:`_padded_coefficients`, cells read). A pure function of
+    its arguments, so a Dask worker can build it (a windowed density is picklable: the worker reopens
+    the file)."""
     s, h, origin, nu, nv = ss.lattice(k, shape)
     read = [0]
 
@@ -596,7 +611,30 @@ def cell_tile(source: CellSource, squared: bool, shape: tuple[int, int], k: int,
         return ss._separable(cells, su - c0, wu, sv - r0, wv)
 
     with _threads(1):  # a tile's kernels are short: one thread each (a worker's threads share the cores)
-        return _padded_coefficients(values, nu, nv, side, tv, tu), read[0]
+        return _padded_coefficients(values, nu, nv, side, tv0, tv1, tu0, tu1), read[0]
+
+
+def rectangles(keys: list[tuple[int, int, int]], most: int) -> list[tuple[int, int, int, int, int]]:
+    """Tiles (k, tv, tu) as rectangles (k, tv0, tv1, tu0, tu1) of at most ``most`` tiles a side that
+    cover exactly them: runs along rows, then runs of equal rows stacked."""
+    runs: list[list[int]] = []
+    for k, tv, tu in sorted(set(keys)):
+        last = runs[-1] if runs else None
+        if last and (last[0], last[1]) == (k, tv) and last[3] == tu - 1 and tu - last[2] < most:
+            last[3] = tu
+        else:
+            runs.append([k, tv, tu, tu])
+    out: dict[tuple[int, int, int], list[int]] = {}  # open rectangles by (level, first and last column)
+    done = []
+    for k, tv, tu0, tu1 in runs:
+        rect = out.get((k, tu0, tu1))
+        if rect and rect[2] == tv - 1 and tv - rect[1] < most:
+            rect[2] = tv
+        else:
+            if rect:
+                done.append(rect)
+            out[(k, tu0, tu1)] = [k, tv, tv, tu0, tu1]
+    return [tuple(r) for r in done + list(out.values())]
 
 
 @nb.njit(cache=True, nogil=True)

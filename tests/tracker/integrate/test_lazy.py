@@ -240,13 +240,13 @@ def test_cell_tiles_built_on_threads_are_the_same_tiles(monkeypatch) -> None:
     with lazy._threads(1):
         want, want_counts = serial.integrate_pixels(*px)
     names: list[str] = []
-    build = lazy.cell_tile
+    build = lazy.cell_tiles
 
     def spy(*args):
         names.append(threading.current_thread().name)
         return build(*args)
 
-    monkeypatch.setattr(lazy, "cell_tile", spy)
+    monkeypatch.setattr(lazy, "cell_tiles", spy)
     monkeypatch.setattr(lazy, "ROUND", 3)  # several rounds
     threaded = lazy.LazyPyramid(source, blocks=1, cache_bytes=1 << 24)
     with lazy._threads(2):
@@ -345,3 +345,26 @@ def test_stacked_windows_read_each_windows_own_cells() -> None:
         for j in range(r0, r1):
             for i in range(c0, c1):
                 assert values[j - frame[0], i - frame[1]] == grid[j, i]
+
+
+@settings(max_examples=60, deadline=None)
+@given(keys=st.sets(st.tuples(st.integers(0, 2), st.integers(0, 9), st.integers(0, 9)), max_size=80), most=st.integers(1, 5))
+def test_rectangles_cover_exactly_the_tiles_asked_for(keys, most) -> None:
+    rects = lazy.rectangles(list(keys), most)
+    covered = [(k, tv, tu) for k, tv0, tv1, tu0, tu1 in rects for tv in range(tv0, tv1 + 1) for tu in range(tu0, tu1 + 1)]
+    assert sorted(covered) == sorted(keys)  # every tile once, no other
+    assert all(0 <= tv1 - tv0 < most and 0 <= tu1 - tu0 < most for _, tv0, tv1, tu0, tu1 in rects)
+
+
+def test_a_rectangle_of_tiles_is_the_tiles_built_one_by_one() -> None:
+    source = Mosaic(rough_field(seed=6, shape=(50, 70)), (6, 5))
+    for k in (0, 5, 12):
+        side = lazy.LazyPyramid(source, blocks=2).level_blocks(k) * scalespace.TILE
+        nu, nv = scalespace.lattice(k, source.shape)[3:5]
+        tv1, tu1 = min(2, (nv - 1) // side), min(3, (nu - 1) // side)
+        tiles, cells = lazy.cell_tiles(source, False, source.shape, k, 0, tv1, 1 if tu1 > 1 else 0, tu1, side)
+        singles = [lazy.cell_tiles(source, False, source.shape, k, tv, tv, tu, tu, side)
+                   for tv in range(tv1 + 1) for tu in range(1 if tu1 > 1 else 0, tu1 + 1)]
+        for got, (want, _) in zip(tiles, singles, strict=True):
+            np.testing.assert_array_equal(got, want[0])
+        assert len(tiles) > 1 and cells < sum(c for _, c in singles)
