@@ -28,6 +28,7 @@ cell of the prior. Units as in
 from __future__ import annotations
 
 import functools
+import itertools
 import threading
 import weakref
 from collections import OrderedDict
@@ -70,8 +71,11 @@ STACK_BYTES = 16 << 20
 mmap threshold (32 MiB), so the stack reuses heap pages rather than faulting fresh ones on every call."""
 CELL_BLOCK = 256
 """Cells per side of the source blocks cached for the fine Gaussians (without a field)."""
+PAD = 32
+"""Cells a side around each :data:`CELL_BLOCK` block kept with it as one window (:meth:`LazyPyramid._padded_runs`):
+the fine Gaussians whose reach fits it read it in place, with no window made per batch."""
 CELL_CACHE_BYTES = 256 << 20
-"""Bytes of float64 source blocks kept for the fine Gaussians."""
+"""Bytes of float64 source blocks kept for the fine Gaussians, and as much again of padded blocks (:data:`PAD`)."""
 SERIAL_BELOW = 1024
 """Batches of fewer integrals run on one thread (as the tracker's small integrator calls do)."""
 ROUND = 16
@@ -137,6 +141,10 @@ class LazyPyramid:
         self.client = client
         self._scattered = None  # (client, the source scattered to its workers)
         self._cell_blocks: OrderedDict[tuple[int, int], np.ndarray] = OrderedDict()  # for the fine Gaussians
+        self._pads = np.empty((0, 0))  # padded blocks kept as the fine Gaussians' windows (:meth:`_padded_runs`)
+        self._pad_frames = np.zeros((0, 4), np.int64)
+        self._pad_slots: OrderedDict[int, int] = OrderedDict()
+        self._pad_free: list[int] = []
         self._lock = threading.RLock()
 
     # --- levels and tiles -------------------------------------------------------------------
@@ -437,24 +445,81 @@ class LazyPyramid:
 
     def _fine(self, idx: np.ndarray, uc, vc, cuu, cuv, cvv, out, counts) -> None:
         """Integrals ``idx``, which the kernel takes as finer than level 0 (they read cells, no tiles),
-        smoothed from windows of the source (:meth:`_fine_windows`), one kernel call per stack of windows."""
+        smoothed from windows of the source: those whose reach (:func:`~tracker.integrate.scalespace.fine_reach`)
+        fits the padded block of their mean from the kept padded blocks (:meth:`_padded_runs`), the
+        others from windows made for them (:meth:`_fine_windows`); one kernel call per run or stack."""
+        if not idx.size:
+            return
         p = self.packed()
-        for values, frames, order, which in self._fine_windows(idx, uc, vc, cuu, cuv, cvv):
+        reach = ss.fine_reach(cuu[idx], cuv[idx], cvv[idx])
+        block, fits = self._home_blocks(uc[idx], vc[idx], reach)
+        runs = itertools.chain(self._padded_runs(idx[fits], block[fits]),
+                               self._fine_windows(idx[~fits], uc, vc, reach[~fits]))
+        for values, frames, order, which in runs:
             with _threads(_threads_for(order.size)):
                 ss._kernel(values, frames, which, ss.PHI_TABLE, p.coef, self.slots, p.scale, p.step, p.u0, p.v0, p.nu, p.nv,
                            p.offset, uc, vc, cuu, cuv, cvv, order, out, counts, nb.get_num_threads())
 
-    def _fine_windows(self, idx: np.ndarray, uc, vc, cuu, cuv, cvv) -> Iterator[tuple[np.ndarray, ...]]:
+    def _home_blocks(self, u: np.ndarray, v: np.ndarray, reach: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per point (pixels): its :data:`CELL_BLOCK` block (row-major number) and whether the cells within
+        ``reach`` of it (the window :func:`window_groups` would give it alone) lie in that block padded by
+        :data:`PAD` cells a side (clipped to the grid)."""
+        b, (h, w) = CELL_BLOCK, self.shape
+        br = np.clip(np.floor(v / b), 0, (h - 1) // b).astype(np.int64)
+        bc = np.clip(np.floor(u / b), 0, (w - 1) // b).astype(np.int64)
+        fits = np.ones(u.shape[0], bool)
+        for x, first, n in ((v, br * b, h), (u, bc * b, w)):
+            fits &= np.clip(np.floor(x - reach), 0, n) >= np.maximum(first - PAD, 0)
+            fits &= np.clip(np.floor(x + reach) + 1, 0, n) <= np.minimum(first + b + PAD, n)
+        return br * ((w - 1) // b + 1) + bc, fits
+
+    def _padded_runs(self, idx: np.ndarray, block: np.ndarray) -> Iterator[tuple[np.ndarray, ...]]:
+        """(values, frames, order, which) for the Gaussians ``idx`` by their padded blocks ``block``: runs
+        of at most the pool's blocks, each block made once from the source (:meth:`_cached_cells`) into a
+        slot of a pool kept between batches (least recently used out first), the pool and its frames the
+        kernel's ``values`` and ``frames``, ``which`` each Gaussian's slot."""
+        if not idx.size:
+            return
+        b, side = CELL_BLOCK, CELL_BLOCK + 2 * PAD
+        (h, w), across = self.shape, (self.shape[1] - 1) // CELL_BLOCK + 1
+        if self._pads.shape[0] == 0:
+            n = max(CELL_CACHE_BYTES // (8 * side * side), 2)
+            self._pads = np.empty((n * side, side))
+            self._pad_frames = np.zeros((n, 4), np.int64)
+            self._pad_free = list(range(n))
+        n = self._pad_frames.shape[0]
+        blocks, which = np.unique(block, return_inverse=True)
+        order = np.argsort(which, kind="stable")
+        first = np.searchsorted(which[order], np.arange(blocks.size + 1))
+        for lo in range(0, blocks.size, n):
+            hi = min(lo + n, blocks.size)
+            slots = np.empty(hi - lo, np.int64)
+            for i, key in enumerate(blocks[lo:hi].tolist()):
+                slot = self._pad_slots.get(key)
+                if slot is None:
+                    slot = self._pad_free.pop() if self._pad_free else self._pad_slots.popitem(last=False)[1]
+                    br, bc = divmod(key, across)
+                    r0, r1 = max(br * b - PAD, 0), min(br * b + b + PAD, h)
+                    c0, c1 = max(bc * b - PAD, 0), min(bc * b + b + PAD, w)
+                    self._cached_cells(r0, r1, c0, c1, self._pads[slot * side : slot * side + r1 - r0, : c1 - c0])
+                    self._pad_frames[slot] = (r0 - slot * side, c0, h, w)
+                    self._pad_slots[key] = slot
+                else:
+                    self._pad_slots.move_to_end(key)
+                slots[i] = slot
+            members = order[first[lo] : first[hi]]
+            yield self._pads, self._pad_frames, idx[members], slots[which[members] - lo]
+
+    def _fine_windows(self, idx: np.ndarray, uc, vc, reach: np.ndarray) -> Iterator[tuple[np.ndarray, ...]]:
         """The Gaussians ``idx`` (finer than level 0) grouped by block of :data:`FINE_BLOCK` cells of
         their means, each group with the source's cells that its Gaussians' on-the-fly smoothing reads
-        (:func:`~tracker.integrate.scalespace.fine_reach`: 5 σ_minor around its rule's points), so
-        they are the numbers of the whole field. Yields (values, frames,
+        (``reach``, :func:`~tracker.integrate.scalespace.fine_reach`: 5 σ_minor around its rule's
+        points), so they are the numbers of the whole field. Yields (values, frames,
         order, which) per run of groups whose windows fit :data:`STACK_BYTES` (or one larger window):
         their windows stacked (:func:`~tracker.integrate.scalespace.stacked_frames`), their Gaussians
         in group order and the frame of each."""
         if not idx.size:
             return
-        reach = ss.fine_reach(cuu[idx], cuv[idx], cvv[idx])
         order, group, bounds = window_groups(uc[idx], vc[idx], reach, reach, self.shape, FINE_BLOCK)
         size = 8 * (bounds[:, 1] - bounds[:, 0]) * (bounds[:, 3] - bounds[:, 2])
         first = np.searchsorted(group, np.arange(bounds.shape[0] + 1))  # each group's first position in order

@@ -128,17 +128,22 @@ def test_a_source_read_window_by_window_gives_the_same_integrals() -> None:
     np.testing.assert_array_equal(got[counts > 0], want[counts > 0])
 
 
-@pytest.mark.parametrize(("cache_blocks", "stack_bytes", "fine_block"),
-                         [(None, None, 128), (1, None, 128), (None, 1, 128), (None, 1_000_000, 128), (None, None, 1)])
+@pytest.mark.parametrize(("cache_blocks", "stack_bytes", "fine_block", "pad"),
+                         [(None, None, 128, "off"), (1, None, 128, "off"), (None, 1, 128, "off"), (None, 1_000_000, 128, "off"),
+                          (None, None, 1, "off"), (None, None, 128, 4), (None, None, 128, None), (1, None, 128, 200)])
 @pytest.mark.parametrize("squared", [False, True])
-def test_without_a_field_fine_gaussians_read_windows_of_the_source(squared, cache_blocks, stack_bytes, fine_block,
+def test_without_a_field_fine_gaussians_read_windows_of_the_source(squared, cache_blocks, stack_bytes, fine_block, pad,
                                                                    monkeypatch) -> None:
     """A source that is not an array (a prior read window by window): Gaussians finer than the pyramid
     are smoothed from windows of it (assembled from cached source blocks, evicted when the cache holds
     one), in several blocks of means, stacked for one kernel call, one per call or a few, with the
     whole field's numbers; with one-cell blocks, nearly every window is one Gaussian's own reach
-    (scalespace.fine_reach), stacked between others: any cell read beyond it would be another's."""
+    (scalespace.fine_reach), stacked between others: any cell read beyond it would be another's. With
+    padded blocks (``pad`` cells; None: the default), the Gaussians whose reach fits read them in
+    place: none ("off": no block can hold a window), some (4), most, or all from a pool of two (evicting)."""
     monkeypatch.setattr(lazy, "FINE_BLOCK", fine_block)
+    if pad is not None:
+        monkeypatch.setattr(lazy, "PAD", -(10**6) if pad == "off" else pad)
     if stack_bytes:
         monkeypatch.setattr(lazy, "STACK_BYTES", stack_bytes)
     if cache_blocks:
@@ -155,6 +160,7 @@ def test_without_a_field_fine_gaussians_read_windows_of_the_source(squared, cach
     np.testing.assert_array_equal(counts, want_counts)
     smin = np.sqrt(0.5 * (px[2] + px[4]) - np.sqrt(0.25 * (px[2] - px[4]) ** 2 + px[3] ** 2))
     assert (smin < scalespace.S0).sum() > 1000 and pyr.cells_read < 40 * field.size
+    assert bool(pyr._pad_slots) == (pad != "off")
 
 
 def test_a_cache_too_small_for_one_gaussian_says_so() -> None:
