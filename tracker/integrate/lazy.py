@@ -42,6 +42,7 @@ import numpy as np
 
 from pipeline.prior import TerrainPrior
 from tracker.integrate import scalespace as ss
+from tracker.integrate.scalespace import GH_SPAN
 
 if TYPE_CHECKING:
     from distributed import Client
@@ -55,9 +56,6 @@ SIDE = BLOCKS * ss.TILE
 """Nodes per tile side at level 0 (256: 128 cells, 1.3 MB of its float64 temporaries)."""
 CACHE_BYTES = 1 << 30
 """Default size of the block pool, bytes (3,400 tiles of 256² nodes)."""
-GH_SPAN = 5.6
-"""Largest |node| of the rules (Gauss-Hermite up to 12 points: 5.50; trapezoid: TRAP_SPAN = 5), in
-leftover σ: bounds how far from its centre a Gaussian's look-ups fall."""
 _T = ss.TILE
 _BLOCK = ss.BLOCK
 BORDER = 1e-9

@@ -300,6 +300,9 @@ TRAP_STEP = 1.6
 """Trapezoid spacing along a wide leftover axis, in σ of the level."""
 TRAP_SPAN = 5.0
 """Trapezoid nodes cover ± this many leftover σ."""
+GH_SPAN = 5.6
+"""Largest |node| of the rules (Gauss-Hermite up to 12 points: 5.50; trapezoid: TRAP_SPAN = 5), in
+leftover σ: bounds how far from its centre a Gaussian's look-ups fall."""
 MAX_POINTS = 4097
 """Most points along one axis; Gaussians needing more (eccentricity beyond ~500:1) go to the terraces."""
 
@@ -555,7 +558,7 @@ def fine_reach(cuu, cuv, cvv):
         s = np.sqrt(lam2)
         n1 = _rule(np.sqrt(lam1 - lam2) / s, xs, ws) if s > 0.0 else 0
         if n1 <= 0:
-            out[n] = 5.6 * np.sqrt(lam1) + 5.0 * s + 3.0
+            out[n] = GH_SPAN * np.sqrt(lam1) + 5.0 * s + 3.0
             continue
         far = 0.0
         for i in range(n1):

@@ -286,7 +286,7 @@ def planned_tiles(pyr: lazy.LazyPyramid, px, widen: int) -> set[int]:
         k0 = int(np.clip(np.floor(np.log(np.sqrt(lam2[n]) / scalespace.S0) / np.log(scalespace.RATIO) + 1e-9), 0, top))
         for k in {int(np.clip(k0 + dk, 0, top)) for dk in range(-widen, widen + 1)}:
             s, h, origin, nu, nv = scalespace.lattice(k, pyr.shape)
-            r = lazy.GH_SPAN * (1 + widen) * (np.sqrt(max(lam1[n] - s * s, 0.0)) + np.sqrt(max(lam2[n] - s * s, 0.0))) + 3 * h
+            r = scalespace.GH_SPAN * (1 + widen) * (np.sqrt(max(lam1[n] - s * s, 0.0)) + np.sqrt(max(lam2[n] - s * s, 0.0))) + 3 * h
             side = pyr.level_blocks(k) * scalespace.TILE
             span = [int(np.clip(np.floor((x + sign * r - origin) / h) + pad, 0, top_node)) // side
                     for x, top_node in ((uc[n], nu - 1), (vc[n], nv - 1)) for sign, pad in ((-1, -2), (1, 3))]
