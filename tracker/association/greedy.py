@@ -84,6 +84,7 @@ from tracker.association.walk import (
     pair_scores,
     walk,
     walk_sequential,
+    widened_gate,
 )
 from tracker.integrate import Integrator, integrate_checked
 from tracker.models.motion import ConstantVelocity, MotionModel, Static
@@ -501,7 +502,10 @@ class Tracker:
                 pool.add(f_rep, f_h, self._score(f_rep, f_h, blk, hyp, cfg), hyp, istate, blk, j)
             elif status == WIDEN:
                 self.stats_["widened"] += 1
-                cand = self._brute(np.arange(H.n), z[j], V[j], t[j], float(fstate[1]))
+                if self._grid is not None:
+                    cand = widened_gate(j, float(fstate[1]), z, V, H._means, H._covs, H.n, assign, self._grid.arrays)
+                else:
+                    cand = self._brute(np.arange(H.n), z[j], V[j], t[j], float(fstate[1]))
                 c = self._score(np.full(cand.size, j), cand, blk, hyp, cfg)
                 status = decide(j, np.arange(cand.size), cand.size, cand, *c, False, blk, hyp, istate, fstate, cfg)
                 if status != DONE:

@@ -586,16 +586,23 @@ def _scan(h, k, z, V, gamma, Hm, Hc, nxt, out, n):
     """The hypotheses of the list starting at h that gate report k at d² <= gamma, into ``out`` from n
     on (as many as fit); returns the new count."""
     while h >= 0:
-        s00 = Hc[h, 0, 0] + V[k, 0, 0]
-        s01 = Hc[h, 0, 1] + V[k, 0, 1]
-        s11 = Hc[h, 1, 1] + V[k, 1, 1]
-        dx = z[k, 0] - Hm[h, 0]
-        dy = z[k, 1] - Hm[h, 1]
-        if (s11 * dx * dx - 2.0 * s01 * dx * dy + s00 * dy * dy) <= gamma * (s00 * s11 - s01 * s01):
-            if n < out.shape[0]:
-                out[n] = h
-            n += 1
+        n = _scan_one(h, k, z, V, gamma, Hm, Hc, out, n)
         h = nxt[h]
+    return n
+
+
+@njit(cache=True, inline="always")
+def _scan_one(h, k, z, V, gamma, Hm, Hc, out, n):
+    """Hypothesis h into ``out[n]`` (if it fits) when it gates report k at d² <= gamma; returns the new count."""
+    s00 = Hc[h, 0, 0] + V[k, 0, 0]
+    s01 = Hc[h, 0, 1] + V[k, 0, 1]
+    s11 = Hc[h, 1, 1] + V[k, 1, 1]
+    dx = z[k, 0] - Hm[h, 0]
+    dy = z[k, 1] - Hm[h, 1]
+    if (s11 * dx * dx - 2.0 * s01 * dx * dy + s00 * dy * dy) <= gamma * (s00 * s11 - s01 * s01):
+        if n < out.shape[0]:
+            out[n] = h
+        n += 1
     return n
 
 
@@ -630,6 +637,34 @@ def _grid_query(k, z, V, gamma, Hm, Hc, hgrid, out):
                 if gx * gx + gy * gy <= reach * (lam_v + cell_lam[c]):
                     n = _scan(h, k, z, V, gamma, Hm, Hc, nxt, out, n)
     return n
+
+
+@njit(cache=True)
+def widened_gate(j, gamma, z, V, Hm, Hc, n, assign, hgrid):
+    """Static hypotheses h < n gating report j of a block at d² <= gamma (a widened gate), ascending:
+    the grid's query, plus the hypotheses assigned to the block's reports before j, tested one by one
+    (the grid places them at the block's end, so it may hold them at a cell they have left, or not
+    at all). A query square of more cells than there are hypotheses tests all n instead."""
+    geo = hgrid[0]
+    x0, y0, cell, nx, ny = geo[0], geo[1], geo[2], geo[3], geo[4]
+    lam_v = _lam_max(V[j, 0, 0], V[j, 0, 1], V[j, 1, 1])
+    radius = math.sqrt(gamma * (lam_v + geo[5])) * (1.0 + 1e-9)
+    span_x = _cell_index(z[j, 0] + radius, x0, cell, nx) - _cell_index(z[j, 0] - radius, x0, cell, nx) + 1
+    span_y = _cell_index(z[j, 1] + radius, y0, cell, ny) - _cell_index(z[j, 1] - radius, y0, cell, ny) + 1
+    if span_x * span_y > n:
+        out = np.empty(n, np.int64)
+        c = 0
+        for h in range(n):
+            c = _scan_one(h, j, z, V, gamma, Hm, Hc, out, c)
+        return out[:c]
+    cnt = _grid_query(j, z, V, gamma, Hm, Hc, hgrid, np.empty(0, np.int64))
+    out = np.empty(cnt + j, np.int64)
+    _grid_query(j, z, V, gamma, Hm, Hc, hgrid, out)
+    c = cnt
+    for i in range(j):
+        if assign[i] >= 0:
+            c = _scan_one(assign[i], j, z, V, gamma, Hm, Hc, out, c)
+    return np.unique(out[:c])
 
 
 GATE_SLOTS = 8

@@ -23,6 +23,7 @@ from tracker.association.walk import (
     pair_geometry,
     pair_geometry_parallel,
     pair_scores,
+    widened_gate,
 )
 from tracker.models.motion import ConstantVelocity, Static
 from tracker.models.sfunc import ExpS
@@ -63,6 +64,40 @@ def test_grid_gate_equals_brute_force(seed, n, m, spread, gamma, outside):
     assert _pairs(ptr, p_h) == _brute(Hm, Hc, z, V, gamma)
     for k in range(m):
         assert np.all(np.diff(p_h[ptr[k] : ptr[k + 1]]) > 0)  # ascending, each once
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 10_000), placed=st.integers(0, 300), new=st.integers(0, 20), extra=st.integers(0, 20),
+       gamma=st.sampled_from([3.0, 41.4, 400.0, 1e5, 1e9]))
+def test_widened_gate_equals_brute_force(seed, placed, new, extra, gamma):
+    # A block mid-walk at report j: the grid holds the `placed` hypotheses where they were at the block's
+    # start; the reports before j were assigned to some of them (which then moved and shrank), to the
+    # `new` hypotheses made in the block (not in the grid), or to none. Every hypothesis at d² <= gamma
+    # must come back, ascending, once (brute force over all of them); the widest gammas take the
+    # every-hypothesis branch.
+    rng = np.random.default_rng(seed)
+    n = placed + new
+    if n == 0:
+        return
+    Hm = rng.uniform(0.0, 10000.0, (n, 2))
+    Hc = random_covs(rng, n, 2.0, 60.0)
+    grid = _HypothesisGrid((0.0, 0.0, 10000.0, 10000.0), 41.4)
+    old = rng.integers(0, placed, extra) if placed else np.zeros(0, np.int64)
+    before = rng.permutation(np.concatenate([np.arange(placed, n), old, np.full(int(rng.integers(0, 5)), -1)]))
+    j = before.size
+    m = j + int(rng.integers(1, 10))
+    z = rng.uniform(-500.0, 10500.0, (m, 2))
+    V = random_covs(rng, m, 2.0, 60.0)
+    grid.reserve(V, n)
+    grid_place(np.arange(placed), Hm, Hc, grid.arrays)
+    assign = np.full(m, -1, np.int64)
+    assign[:j] = before
+    moved = np.unique(old)
+    Hm[moved] += rng.normal(0, 800.0, (moved.size, 2))
+    Hc[moved] *= 0.5  # fusion only shrinks a static covariance
+    z[j] = Hm[rng.integers(0, n)] + rng.normal(0.0, 100.0, 2)  # near one, moved or new or neither
+    got = widened_gate(j, gamma, z, V, Hm, Hc, n, assign, grid.arrays)
+    assert got.tolist() == sorted(h for _, h in _brute(Hm, Hc, z[j : j + 1], V[j : j + 1], gamma))
 
 
 def test_grid_lists_hold_each_hypothesis_once():
