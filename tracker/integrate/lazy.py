@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import functools
 import itertools
+import mmap
 import threading
 import weakref
 from collections import OrderedDict
@@ -73,7 +74,10 @@ PAD = 32
 """Cells a side around each :data:`CELL_BLOCK` block kept with it as one window (:meth:`LazyPyramid._padded_runs`):
 the fine Gaussians whose reach fits it read it in place, with no window made per batch."""
 CELL_CACHE_BYTES = 256 << 20
-"""Bytes of float64 source blocks kept for the fine Gaussians, and as much again of padded blocks (:data:`PAD`)."""
+"""Bytes of float64 source blocks kept for the fine Gaussians that no padded block holds."""
+PAD_CACHE_BYTES = 768 << 20
+"""Bytes of float64 padded blocks (:data:`PAD`) kept for the fine Gaussians (940: a stream over 100
+squares of 250 cells, the tracker bench's targets spread over a 50,000² prior, needs 400-900)."""
 SERIAL_BELOW = 1024
 """Batches of fewer integrals run on one thread (as the tracker's small integrator calls do)."""
 ROUND = 16
@@ -119,7 +123,7 @@ class LazyPyramid:
         self.field = field
         self.blocks = int(blocks)
         self.n_slots = max(int(cache_bytes) // (4 * _BLOCK) - 1, 4 * self.blocks**2)  # besides MISSING
-        self.pool = np.zeros((self.n_slots + 1, _BLOCK), np.float32)
+        self.pool = huge_zeros((self.n_slots + 1, _BLOCK), np.float32)
         self.pool[MISSING] = np.nan
         self._free = [s for s in range(self.n_slots, -1, -1) if s != MISSING]
         self._tiles: dict[tuple[int, int, int], np.ndarray] = {}  # built tiles: their positions in slots
@@ -481,8 +485,8 @@ class LazyPyramid:
         b, side = CELL_BLOCK, CELL_BLOCK + 2 * PAD
         (h, w), across = self.shape, (self.shape[1] - 1) // CELL_BLOCK + 1
         if self._pads.shape[0] == 0:
-            n = max(CELL_CACHE_BYTES // (8 * side * side), 2)
-            self._pads = np.empty((n * side, side))
+            n = max(PAD_CACHE_BYTES // (8 * side * side), 2)
+            self._pads = huge_zeros((n * side, side), np.float64)
             self._pad_frames = np.zeros((n, 4), np.int64)
             self._pad_free = list(range(n))
         n = self._pad_frames.shape[0]
@@ -499,7 +503,7 @@ class LazyPyramid:
                     br, bc = divmod(key, across)
                     r0, r1 = max(br * b - PAD, 0), min(br * b + b + PAD, h)
                     c0, c1 = max(bc * b - PAD, 0), min(bc * b + b + PAD, w)
-                    self._cached_cells(r0, r1, c0, c1, self._pads[slot * side : slot * side + r1 - r0, : c1 - c0])
+                    self._pads[slot * side : slot * side + r1 - r0, : c1 - c0] = self._cells(r0, r1, c0, c1)
                     self._pad_frames[slot] = (r0 - slot * side, c0, h, w)
                     self._pad_slots[key] = slot
                 else:
@@ -619,6 +623,17 @@ def window_groups(u: np.ndarray, v: np.ndarray, reach_u: np.ndarray, reach_v: np
         bounds[:, 2] = np.clip(np.floor(np.minimum.reduceat(uo - ru, starts)), 0, w)
         bounds[:, 3] = np.clip(np.floor(np.maximum.reduceat(uo + ru, starts)) + 1, bounds[:, 2], w)
     return order, group, bounds
+
+
+def huge_zeros(shape: tuple[int, ...], dtype) -> np.ndarray:
+    """A zeroed array on anonymous memory advised for transparent huge pages where the kernel offers
+    them (Linux ``madvise`` mode): a pool filled block by block then faults 2 MiB pages, not 4 KiB ones
+    (first touches were most of a cold tile's insertion)."""
+    count = int(np.prod(shape))
+    buf = mmap.mmap(-1, max(count * np.dtype(dtype).itemsize, 1))
+    if hasattr(mmap, "MADV_HUGEPAGE"):
+        buf.madvise(mmap.MADV_HUGEPAGE)
+    return np.frombuffer(buf, dtype, count=count).reshape(shape)
 
 
 def read_cells(source: CellSource, squared: bool, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:

@@ -148,6 +148,7 @@ def test_without_a_field_fine_gaussians_read_windows_of_the_source(squared, cach
         monkeypatch.setattr(lazy, "STACK_BYTES", stack_bytes)
     if cache_blocks:
         monkeypatch.setattr(lazy, "CELL_CACHE_BYTES", cache_blocks * lazy.CELL_BLOCK**2 * 8)
+        monkeypatch.setattr(lazy, "PAD_CACHE_BYTES", cache_blocks * (lazy.CELL_BLOCK + 2 * lazy.PAD) ** 2 * 8)
     tile = rough_field(seed=1, shape=(61, 70))
     source = Mosaic(tile, (7, 6))
     field = source[0 : source.shape[0], 0 : source.shape[1]]
@@ -374,3 +375,11 @@ def test_a_rectangle_of_tiles_is_the_tiles_built_one_by_one() -> None:
         for got, (want, _) in zip(tiles, singles, strict=True):
             np.testing.assert_array_equal(got, want[0])
         assert len(tiles) > 1 and cells < sum(c for _, c in singles)
+
+
+def test_huge_zeros_is_a_writable_zeroed_array_of_its_shape() -> None:
+    a = lazy.huge_zeros((3, 5), np.float32)
+    assert a.shape == (3, 5) and a.dtype == np.float32 and a.flags.writeable and not a.any()
+    a[2, 4] = 7.0
+    assert a.sum() == 7.0
+    assert lazy.huge_zeros((0, 4), np.float64).shape == (0, 4)
