@@ -40,11 +40,15 @@ BLOCK = 10_000
 
 
 class RepeatedTile:
-    """A (rows, cols) cell source that repeats one tile; windows are read on demand (a :class:`CellSource`)."""
+    """A (rows, cols) cell source that repeats one tile; windows are read on demand (a :class:`CellSource`,
+    and with a float64 tile a density for :class:`~pipeline.prior.TerrainPrior`: ``dtype``, ``max``)."""
 
-    def __init__(self, tile: np.ndarray, shape: tuple[int, int]) -> None:
-        self.tile = np.asarray(tile, dtype=np.float32)
+    def __init__(self, tile: np.ndarray, shape: tuple[int, int], dtype=np.float32) -> None:
+        self.tile = np.asarray(tile, dtype=dtype)
         self.shape = shape
+        self.dtype = self.tile.dtype
+        self.ndim = 2
+        self.max = float(self.tile.max())
 
     def __getitem__(self, key: tuple[slice, slice]) -> np.ndarray:
         rows, cols = (np.arange(*k.indices(n)) for k, n in zip(key, self.shape, strict=True))
@@ -185,6 +189,89 @@ def track_file(folder: str, windowed: bool) -> dict:
             "peak_rss_gib": peak_gib()}
 
 
+def _tt(prior, reports) -> dict:
+    """TT over ``reports`` in chunks of 50,000 (bench_tracker's stream): wall seconds, integrals and the
+    seconds the tracker spent in them (``timings_["integrals"]``: the rate the goal compares)."""
+    from tracker.association.greedy import Tracker
+
+    tr = Tracker(prior, "TT", tau=-1.7, off_prior="skip")
+    t0 = time.perf_counter()
+    for lo in range(0, len(reports), 50_000):
+        tr.update(reports.subset(slice(lo, lo + 50_000)))
+    wall = time.perf_counter() - t0
+    n, sec = int(tr.stats_["integrals"]), float(tr.timings_["integrals"])
+    return {"wall_s": wall, "integrals": n, "integral_s": sec, "per_s": n / sec, "n_detected": int(tr.n_detected_),
+            "skipped": int(tr.stats_["skipped"]), "widened": int(tr.stats_["widened"])}
+
+
+def track_mosaic(n: int, n_targets: int, n_reports: int, squares: int) -> dict:
+    """TT with bench_tracker's stream (its 40 m ridges-and-lakes prior, n_targets at 10 per km², report
+    σ 5-60 m) on that prior in memory (the whole pyramid), then on an n² prior of the same cells repeated
+    (:class:`RepeatedTile`; 50,000² is 2,000 km at 40 m) with the targets in ``squares`` squares of the
+    same density placed uniformly over it, cold (tiles built where reports fall) and again (cached)."""
+    from bench.bench_tracker import reports_of, scenario, synthetic_prior
+    from pipeline.gis.grid import Grid
+    from pipeline.prior import TerrainPrior
+    from tracker.integrate import lazy
+    from tracker.types.reports import Reports
+
+    size_m = 100_000.0 * (n_targets / 100_000) ** 0.5
+    small = synthetic_prior(size_m)
+    reports = scenario(small, n_targets, n_reports)
+    _tt(small, reports.subset(slice(0, 50_000)))  # compile, build the whole pyramid
+    base = _tt(small, reports)
+    cells = small.grid.shape[0]
+    n = -(-n // cells) * cells  # whole copies of the small prior's cells
+    grid = Grid.from_bounds((0.0, 0.0, n * 40.0, n * 40.0), 40.0, "EPSG:32634")
+    tile = np.asarray(small.density, np.float64) * (small.density.size / (n * n))  # integrates to 1 over n²
+    big = TerrainPrior(grid, RepeatedTile(tile, (n, n), np.float64), None, None, {"bench": "mosaic"})
+    rng = np.random.default_rng(5)
+    side = int(round(size_m / squares**0.5 / 40.0))  # cells: the same targets per km² as the small scene
+    per = n_targets // squares
+    targets = []
+    for c0, r0 in rng.integers(0, n - side, (squares, 2)).tolist():
+        w = np.cumsum(big.density[r0 : r0 + side, c0 : c0 + side].ravel())  # from the prior, as scenario()
+        cell = np.minimum(np.searchsorted(w, rng.random(per) * w[-1], side="right"), w.size - 1)
+        rr, cc = np.divmod(cell, side)
+        targets.append(np.column_stack([(c0 + cc + rng.random(per)) * 40.0, n * 40.0 - (r0 + rr + rng.random(per)) * 40.0]))
+    targets = np.concatenate(targets)
+    truth = rng.integers(0, targets.shape[0], n_reports)
+    means, covs = reports_of(targets[truth], rng)
+    spread = Reports.create(means, covs, np.arange(n_reports, dtype=float), truth)
+    cold = _tt(big, spread)
+    pyr = lazy.lazy_pyramid(big, False)
+    built, read = pyr.tiles_built, pyr.cells_read
+    again = _tt(big, spread)
+    return {"n": n, "n_targets": n_targets, "n_reports": n_reports, "squares": squares, "square_km": side * 0.04,
+            "small": base, "cold": cold, "again": again, "tiles_built": built, "cells_read": read,
+            "tiles_rebuilt_again": pyr.tiles_built - built, "tables_made": big._tables is not None,
+            "peak_rss_gib": peak_gib(), "load_average": list(os.getloadavg())}
+
+
+def mosaic_rows(quick: bool) -> tuple[dict, list[dict]]:
+    """The goal's own run (issue 18, part 3): TT on a 50,000² prior, its integral rate against TT's on the
+    small prior in memory, in one child process (its peak RSS)."""
+    args = ("10000", "10000", "100000", "10") if quick else ("50000", "100000", "1000000", "100")
+    out = _child("tt", *args)
+    base = out["small"]["per_s"]
+    for k in ("cold", "again"):
+        out[k]["ratio"] = out[k]["per_s"] / base
+    ok_mem = out["peak_rss_gib"] <= GOAL_GIB and not out["tables_made"]
+    what = (f"TT on a {out['n']:,}² prior (2,000 km at 40 m; bench_tracker's cells repeated), {out['n_reports']:,} reports of "
+            f"{out['n_targets']:,} targets in {out['squares']} squares of {out['square_km']:.0f} km spread over it")
+    rows = []
+    for k, label in (("cold", "first pass (tiles built where reports fall)"), ("again", "the same stream again (tiles cached)")):
+        r = out[k]
+        rows.append({"what": f"{what}, {label}",
+                     "value": f"{r['integrals']:,} integrals in {r['integral_s']:.1f} s = {r['per_s']:,.0f}/s = {r['ratio']:.2f}x TT's on "
+                              f"the 2,500² prior in memory ({base:,.0f}/s, same process); TT {r['wall_s']:.1f} s wall "
+                              f"(small prior {out['small']['wall_s']:.1f} s); {out['tiles_built']:,} tiles, "
+                              f"{out['cells_read'] / 1e6:,.0f} M cells read; {r['widened']:,} widened gates; "
+                              f"{out['peak_rss_gib']:.2f} GiB peak",
+                     "goal": ">= 0.5x, <= 4 GiB", "ok": bool(r["ratio"] >= GOAL_RATIO and ok_mem)})
+    return out, rows
+
+
 def _child(*args: str) -> dict:
     proc = subprocess.run([sys.executable, "-m", "bench.bench_lazy", *args], cwd=ROOT, capture_output=True, text=True, check=False)
     if proc.returncode != 0:
@@ -258,6 +345,8 @@ def run(quick: bool = False) -> dict:
     table.append({"what": f"lazy = whole pyramid on the 2,000² prior ({ident['n']:,} integrals of the stream)",
                   "value": f"{ident['differ']} differ (largest relative difference {ident['max_rel']:.1e})",
                   "goal": "identical", "ok": ident["differ"] == 0})
+    out["mosaic"], rows = mosaic_rows(quick)
+    table[:0] = rows
     out["file"], rows = file_rows(quick)
     table.extend(rows)
     return {"lazy": out, "table": table}
@@ -266,6 +355,8 @@ def run(quick: bool = False) -> dict:
 if __name__ == "__main__":
     if sys.argv[1] == "write":
         write_file_scene(sys.argv[2], *(int(a) for a in sys.argv[3:6]))
+    elif sys.argv[1] == "tt":
+        print(json.dumps(track_mosaic(*(int(a) for a in sys.argv[2:6]))))
     elif sys.argv[1] == "track":
         print(json.dumps(track_file(sys.argv[2], bool(int(sys.argv[3])))))
     else:
