@@ -485,13 +485,15 @@ class Tracker:
         istate = np.array([H.n, 0, self.n_reports_, 0, min(H.n, LOW_C)], dtype=np.int64)
         fstate = np.array([floor, 0.0, self._low_min(low, istate[4])])
         cfg = self._cfg()
+        hgrid = None if self._grid is None else self._grid.arrays
+        widened = np.zeros(1, np.int64)  # the gates walk() widens itself
         tm["setup"] += clock() - t1
         pool.add(p_rep, p_h, self._score(p_rep, p_h, blk, hyp, cfg), hyp, istate, blk, 0)
         self.stats_["blocks"] += 1
         j = 0
         while j < m:
             t0 = clock()
-            j, status = walk(j, blk, pool.arrays, hyp, istate, fstate, cfg)
+            j, status = walk(j, blk, pool.arrays, hyp, istate, fstate, cfg, hgrid, widened)
             t1 = clock()
             tm["walk"] += t1 - t0
             scoring = tm["geometry"] + tm["integrals"]  # counted there, not as refresh
@@ -503,7 +505,7 @@ class Tracker:
             elif status == WIDEN:
                 self.stats_["widened"] += 1
                 if self._grid is not None:
-                    cand = widened_gate(j, float(fstate[1]), z, V, H._means, H._covs, H.n, assign, self._grid.arrays)
+                    cand = widened_gate(j, float(fstate[1]), z, V, H._means, H._covs, H.n, assign, hgrid)
                 else:
                     cand = self._brute(np.arange(H.n), z[j], V[j], t[j], float(fstate[1]))
                 c = self._score(np.full(cand.size, j), cand, blk, hyp, cfg)
@@ -517,6 +519,7 @@ class Tracker:
         if self._grid is not None:
             grid_place(assign, H._means, H._covs, self._grid.arrays)
         tm["walk"] += clock() - t0
+        self.stats_["widened"] += int(widened[0])
         self.stats_["pairs"] += int(istate[3])
         self.n_reports_ = int(istate[2])
         return assign

@@ -31,7 +31,7 @@ from numba import njit, prange
 from tracker.association.cell_lists import relink
 from tracker.gating.grid import counting_order
 from tracker.models.motion import MOTION_CV, cv_cov_entry, cv_mean_entry
-from tracker.models.sfunc import log_s_ratio_code
+from tracker.models.sfunc import KIND_EXP, log_s_ratio_code
 
 DONE, CONFLICT, WIDEN = 0, 1, 2
 _LOG_2PI = math.log(2.0 * math.pi)
@@ -456,9 +456,11 @@ def _decide_now(j, nc, blk, pool, hyp, istate, fstate, cfg):
 
 
 @njit(cache=True)
-def walk(start, blk, pool, hyp, istate, fstate, cfg):
+def walk(start, blk, pool, hyp, istate, fstate, cfg, hgrid, widened):
     """Decide reports start.. until one conflicts with an earlier decision of the block or needs a
-    wider gate; returns (that report, CONFLICT or WIDEN) or (m, DONE)."""
+    wider gate that :func:`_widen_here` cannot settle; returns (that report, CONFLICT or WIDEN) or
+    (m, DONE). ``hgrid``: the static hypotheses' grid, or None; ``widened[0]`` counts the gates
+    widened here."""
     p_h, p_score, p_mean, p_cov, p_logc, p_next, head = pool
     dirty = hyp[5]
     conflicted = blk[5]
@@ -476,7 +478,9 @@ def walk(start, blk, pool, hyp, istate, fstate, cfg):
             p = p_next[p]
         if stale:
             status = _decide_now(j, nc, blk, pool, hyp, istate, fstate, cfg)
-            if status != DONE:
+            if status == WIDEN and _widen_here(j, blk, hyp, istate, fstate, cfg, hgrid):
+                widened[0] += 1
+            elif status != DONE:
                 return j, status
             continue
         cand = np.empty(nc, np.int64)
@@ -488,9 +492,39 @@ def walk(start, blk, pool, hyp, istate, fstate, cfg):
                 nc += 1
             p = p_next[p]
         status = decide(j, cand, nc, p_h, p_score, p_mean, p_cov, p_logc, True, blk, hyp, istate, fstate, cfg)
-        if status != DONE:
+        if status == WIDEN and _widen_here(j, blk, hyp, istate, fstate, cfg, hgrid):
+            widened[0] += 1
+        elif status != DONE:
             return j, status
     return m, DONE
+
+
+@njit(cache=True)
+def _widen_here(j, blk, hyp, istate, fstate, cfg, hgrid):
+    """Report j's decision in its widened gate (γ = ``fstate[1]``) without leaving numba, when no
+    integral is needed: TT, static, S = e^{-nτ}, and every hypothesis in that gate below the bound
+    (ln G - ln c) + ln r_max < ln ∫G(z,V)r - τ (``needed_pairs``' test, in its order of operations),
+    so each scores -inf as ``Tracker._score`` would score it. Returns whether it decided."""
+    if hgrid is None:
+        return False
+    terrain, log_rmax, s_kind, tau = cfg[1], cfg[2], cfg[3], cfg[4]
+    if not terrain or s_kind != KIND_EXP:
+        return False
+    Hm, Hc, Hlogc = hyp[0], hyp[1], hyp[2]
+    cand = widened_gate(j, fstate[1], blk[0], blk[1], Hm, Hc, istate[0], blk[6], hgrid)
+    nc = cand.shape[0]
+    D = Hm.shape[1]
+    c_score = np.full(nc, -np.inf)
+    c_mean = np.empty((nc, D))
+    c_cov = np.empty((nc, D, D))
+    c_logc = np.zeros(nc)
+    pm = np.empty(2)
+    pc = np.empty((2, 2))
+    for i in range(nc):
+        log_g = _pair_geom(cand[i], j, blk, hyp, cfg, c_mean[i], c_cov[i], pm, pc)
+        if (log_g - Hlogc[cand[i]]) + log_rmax >= blk[3][j] - tau:
+            return False  # an integral decides: Tracker._block takes it
+    return decide(j, np.arange(nc), nc, cand, c_score, c_mean, c_cov, c_logc, False, blk, hyp, istate, fstate, cfg) == DONE
 
 
 @njit(cache=True)

@@ -17,6 +17,8 @@ from hypothesis import strategies as st
 from pipeline.gis.grid import Grid
 from pipeline.prior.terrain import TerrainPrior
 from tracker.association.greedy import Tracker, associate, perfect_estimate
+from tracker.association.walk import widened_gate as _widened_gate
+from tracker.gating.gate import gate_unchecked
 from tracker.integrate import integrate
 from tracker.models.motion import ConstantVelocity
 from tracker.models.sfunc import ExpS, PoissonS, log_s
@@ -423,3 +425,25 @@ def test_timings_split_the_total(prior, variant):
         assert tm["integrals"] > 0.0 and tm["gate"] > 0.0
     else:  # the sequential loop: gating and products happen inside the walk
         assert tm["gate"] == tm["geometry"] == tm["refresh"] == 0.0
+
+
+@pytest.mark.parametrize(("tau", "gamma"), [(-1.7, 9.21), (1.0, 9.21), (-1.7, 3.0)])
+def test_gates_widened_inside_the_walk_decide_as_the_block_gate_path(tau, gamma, monkeypatch):
+    # Targets in a small part of a large prior (r low everywhere): new targets' reports fail the gate
+    # bound often. The walk settles those whose widened gate needs no integral itself (walk._widen_here),
+    # the others come back to Tracker._block; the gater path (no hypotheses' grid) widens them all in
+    # Python by brute force. Decisions and hypotheses must be the same.
+    import tracker.association.greedy as greedy
+
+    calls = []
+    monkeypatch.setattr(greedy, "widened_gate", lambda *a: calls.append(1) or _widened_gate(*a))
+    prior = cos_prior(size_m=40000.0, cell=40.0)
+    reports, _ = scenario(seed=11, n_targets=300, n_reports=3000, size_m=40000.0, spread=(5.0, 60.0))
+    fast = Tracker(prior, "TT", tau=tau, gamma=gamma, block=256)
+    got = fast.update(reports)
+    slow = Tracker(prior, "TT", tau=tau, gamma=gamma, block=256, gater=gate_unchecked)
+    want = slow.update(reports)
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(fast.hypotheses_.log_c, slow.hypotheses_.log_c)
+    np.testing.assert_array_equal(fast.hypotheses_.means, slow.hypotheses_.means)
+    assert fast.stats_["widened"] == slow.stats_["widened"] > len(calls) > 0
