@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import functools
 import itertools
+import math
 import mmap
 import threading
 import weakref
@@ -48,7 +49,8 @@ from tracker.integrate.scalespace import GH_SPAN
 if TYPE_CHECKING:
     from distributed import Client
 
-__all__ = ["BLOCKS", "CACHE_BYTES", "SIDE", "CellSource", "LazyPyramid", "cell_tiles", "lazy_pyramid", "rectangles", "tile_client"]
+__all__ = ["BLOCKS", "CACHE_BYTES", "SIDE", "CellSource", "LazyPyramid", "cell_tiles", "home_blocks", "huge_zeros", "lazy_pyramid",
+           "rectangles", "tile_client"]
 
 BLOCKS = 8
 """Kernel blocks (:data:`~tracker.integrate.scalespace.TILE` nodes) per tile side at levels 0-3; levels
@@ -145,8 +147,10 @@ class LazyPyramid:
         self._cell_blocks: OrderedDict[tuple[int, int], np.ndarray] = OrderedDict()  # for the fine Gaussians
         self._pads = np.empty((0, 0))  # padded blocks kept as the fine Gaussians' windows (:meth:`_padded_runs`)
         self._pad_frames = np.zeros((0, 4), np.int64)
-        self._pad_slots: OrderedDict[int, int] = OrderedDict()
-        self._pad_free: list[int] = []
+        self._pad_slot_of = np.zeros(0, np.int64)  # per padded block of the grid: its slot, or -1
+        self._pad_key = np.zeros(0, np.int64)  # per slot: the block it holds, or -1
+        self._pad_used = np.zeros(0, np.int64)  # per slot: the run that last used it
+        self._pad_clock = 0
         self._lock = threading.RLock()
 
     # --- levels and tiles -------------------------------------------------------------------
@@ -465,21 +469,15 @@ class LazyPyramid:
     def _home_blocks(self, u: np.ndarray, v: np.ndarray, reach: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Per point (pixels): its :data:`CELL_BLOCK` block (row-major number) and whether the cells within
         ``reach`` of it (the window :func:`window_groups` would give it alone) lie in that block padded by
-        :data:`PAD` cells a side (clipped to the grid)."""
-        b, (h, w) = CELL_BLOCK, self.shape
-        br = np.clip(np.floor(v / b), 0, (h - 1) // b).astype(np.int64)
-        bc = np.clip(np.floor(u / b), 0, (w - 1) // b).astype(np.int64)
-        fits = np.ones(u.shape[0], bool)
-        for x, first, n in ((v, br * b, h), (u, bc * b, w)):
-            fits &= np.clip(np.floor(x - reach), 0, n) >= np.maximum(first - PAD, 0)
-            fits &= np.clip(np.floor(x + reach) + 1, 0, n) <= np.minimum(first + b + PAD, n)
-        return br * ((w - 1) // b + 1) + bc, fits
+        :data:`PAD` cells a side (clipped to the grid); :func:`home_blocks`."""
+        return home_blocks(u, v, reach, self.shape[0], self.shape[1], CELL_BLOCK, PAD)
 
     def _padded_runs(self, idx: np.ndarray, block: np.ndarray) -> Iterator[tuple[np.ndarray, ...]]:
         """(values, frames, order, which) for the Gaussians ``idx`` by their padded blocks ``block``: runs
-        of at most the pool's blocks, each block made once from the source (:meth:`_cached_cells`) into a
-        slot of a pool kept between batches (least recently used out first), the pool and its frames the
-        kernel's ``values`` and ``frames``, ``which`` each Gaussian's slot."""
+        of at most the pool's blocks, each block made once from the source into a slot of a pool kept
+        between batches (least recently used out first), the pool and its frames the kernel's ``values``
+        and ``frames``, ``which`` each Gaussian's slot. A batch whose blocks are all held is one run
+        with no grouping (the common case of a stream that stays where it was)."""
         if not idx.size:
             return
         b, side = CELL_BLOCK, CELL_BLOCK + 2 * PAD
@@ -488,26 +486,38 @@ class LazyPyramid:
             n = max(PAD_CACHE_BYTES // (8 * side * side), 2)
             self._pads = huge_zeros((n * side, side), np.float64)
             self._pad_frames = np.zeros((n, 4), np.int64)
-            self._pad_free = list(range(n))
+            self._pad_slot_of = np.full(((h - 1) // b + 1) * across, -1, np.int64)
+            self._pad_key = np.full(n, -1, np.int64)
+            self._pad_used = np.zeros(n, np.int64)
         n = self._pad_frames.shape[0]
+        held = self._pad_slot_of[block]
+        if held.min() >= 0:
+            self._pad_clock += 1
+            self._pad_used[held] = self._pad_clock
+            yield self._pads, self._pad_frames, idx, held
+            return
         blocks, which = np.unique(block, return_inverse=True)
         order = np.argsort(which, kind="stable")
         first = np.searchsorted(which[order], np.arange(blocks.size + 1))
         for lo in range(0, blocks.size, n):
             hi = min(lo + n, blocks.size)
-            slots = np.empty(hi - lo, np.int64)
-            for i, key in enumerate(blocks[lo:hi].tolist()):
-                slot = self._pad_slots.get(key)
-                if slot is None:
-                    slot = self._pad_free.pop() if self._pad_free else self._pad_slots.popitem(last=False)[1]
-                    br, bc = divmod(key, across)
-                    r0, r1 = max(br * b - PAD, 0), min(br * b + b + PAD, h)
-                    c0, c1 = max(bc * b - PAD, 0), min(bc * b + b + PAD, w)
-                    self._pads[slot * side : slot * side + r1 - r0, : c1 - c0] = self._cells(r0, r1, c0, c1)
-                    self._pad_frames[slot] = (r0 - slot * side, c0, h, w)
-                    self._pad_slots[key] = slot
-                else:
-                    self._pad_slots.move_to_end(key)
+            self._pad_clock += 1
+            slots = self._pad_slot_of[blocks[lo:hi]]
+            self._pad_used[slots[slots >= 0]] = self._pad_clock
+            miss = np.flatnonzero(slots < 0)
+            # empty slots first, then the least recently used of those this run does not hold
+            free = np.flatnonzero(self._pad_used < self._pad_clock)
+            free = free[np.lexsort((self._pad_used[free], self._pad_key[free] >= 0))][: miss.size]
+            for i, slot in zip(miss.tolist(), free.tolist(), strict=True):
+                key = int(blocks[lo + i])
+                if self._pad_key[slot] >= 0:
+                    self._pad_slot_of[self._pad_key[slot]] = -1
+                br, bc = divmod(key, across)
+                r0, r1 = max(br * b - PAD, 0), min(br * b + b + PAD, h)
+                c0, c1 = max(bc * b - PAD, 0), min(bc * b + b + PAD, w)
+                self._pads[slot * side : slot * side + r1 - r0, : c1 - c0] = self._cells(r0, r1, c0, c1)
+                self._pad_frames[slot] = (r0 - slot * side, c0, h, w)
+                self._pad_key[slot], self._pad_slot_of[key], self._pad_used[slot] = key, slot, self._pad_clock
                 slots[i] = slot
             members = order[first[lo] : first[hi]]
             yield self._pads, self._pad_frames, idx[members], slots[which[members] - lo]
@@ -623,6 +633,31 @@ def window_groups(u: np.ndarray, v: np.ndarray, reach_u: np.ndarray, reach_v: np
         bounds[:, 2] = np.clip(np.floor(np.minimum.reduceat(uo - ru, starts)), 0, w)
         bounds[:, 3] = np.clip(np.floor(np.maximum.reduceat(uo + ru, starts)) + 1, bounds[:, 2], w)
     return order, group, bounds
+
+
+@nb.njit(cache=True)
+def home_blocks(u, v, reach, h: int, w: int, b: int, pad: int):
+    """(block, fits) of :meth:`LazyPyramid._home_blocks` for points (u, v) (pixels) on an (h, w) grid of
+    ``b``-cell blocks: per axis the block is floor(x / b) clipped to the grid's blocks, and the point
+    fits when floor(x - reach) and floor(x + reach) + 1, clipped to [0, n], lie within the block's
+    cells padded by ``pad`` (clipped to [0, n])."""
+    m = u.shape[0]
+    block = np.empty(m, np.int64)
+    fits = np.empty(m, np.bool_)
+    across = (w - 1) // b + 1
+    for i in range(m):
+        ok = True
+        first = np.empty(2, np.int64)
+        for axis in range(2):
+            x, n = (v[i], h) if axis == 0 else (u[i], w)
+            k = min(max(math.floor(x / b), 0.0), float((n - 1) // b))
+            first[axis] = int(k)
+            lo = min(max(math.floor(x - reach[i]), 0.0), float(n))
+            hi = min(max(math.floor(x + reach[i]) + 1.0, 0.0), float(n))
+            ok = ok and lo >= max(first[axis] * b - pad, 0) and hi <= min(first[axis] * b + b + pad, n)
+        block[i] = first[0] * across + first[1]
+        fits[i] = ok
+    return block, fits
 
 
 def huge_zeros(shape: tuple[int, ...], dtype) -> np.ndarray:

@@ -161,7 +161,10 @@ def test_without_a_field_fine_gaussians_read_windows_of_the_source(squared, cach
     np.testing.assert_array_equal(counts, want_counts)
     smin = np.sqrt(0.5 * (px[2] + px[4]) - np.sqrt(0.25 * (px[2] - px[4]) ** 2 + px[3] ** 2))
     assert (smin < scalespace.S0).sum() > 1000 and pyr.cells_read < 40 * field.size
-    assert bool(pyr._pad_slots) == (pad != "off")
+    assert bool((pyr._pad_key >= 0).any()) == (pad != "off")
+    for lo in range(0, 3000, 1000):  # again, in batches: the padded blocks held (or evicted, from a pool of two)
+        got, _ = pyr.integrate_pixels(*(a[lo : lo + 1000] for a in px))
+        np.testing.assert_array_equal(got, want[lo : lo + 1000])
 
 
 def test_a_cache_too_small_for_one_gaussian_says_so() -> None:
@@ -383,3 +386,32 @@ def test_huge_zeros_is_a_writable_zeroed_array_of_its_shape() -> None:
     a[2, 4] = 7.0
     assert a.sum() == 7.0
     assert lazy.huge_zeros((0, 4), np.float64).shape == (0, 4)
+
+
+def _home_blocks_numpy(u, v, reach, h, w, b, pad):
+    """The padded-block formula in numpy (the oracle of lazy.home_blocks)."""
+    br = np.clip(np.floor(v / b), 0, (h - 1) // b).astype(np.int64)
+    bc = np.clip(np.floor(u / b), 0, (w - 1) // b).astype(np.int64)
+    fits = np.ones(u.shape[0], bool)
+    for x, first, n in ((v, br * b, h), (u, bc * b, w)):
+        fits &= np.clip(np.floor(x - reach), 0, n) >= np.maximum(first - pad, 0)
+        fits &= np.clip(np.floor(x + reach) + 1, 0, n) <= np.minimum(first + b + pad, n)
+    return br * ((w - 1) // b + 1) + bc, fits
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 10**6), h=st.integers(1, 2000), w=st.integers(1, 2000), b=st.sampled_from([1, 7, 64, 256]),
+       pad=st.sampled_from([-5, 0, 3, 32]))
+def test_home_blocks_follow_the_numpy_formula(seed, h, w, b, pad) -> None:
+    rng = np.random.default_rng(seed)
+    n = 300
+    u = rng.uniform(-0.1 * w, 1.1 * w, n)
+    v = rng.uniform(-0.1 * h, 1.1 * h, n)
+    u[:20] = np.round(u[:20])  # on cell and block edges
+    v[:20] = np.round(v[:20] / b) * b
+    reach = rng.uniform(0.0, 3.0 * b, n)
+    reach[20:40] = np.round(reach[20:40])
+    got = lazy.home_blocks(u, v, reach, h, w, b, pad)
+    want = _home_blocks_numpy(u, v, reach, h, w, b, pad)
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1], want[1])
