@@ -505,7 +505,7 @@ class Tracker:
             elif status == WIDEN:
                 self.stats_["widened"] += 1
                 if self._grid is not None:
-                    cand = widened_gate(j, float(fstate[1]), z, V, H._means, H._covs, H.n, assign, hgrid)
+                    cand = widened_gate(j, float(fstate[1]), z, V, t, H._means, H._covs, H._times, H.n, assign, hgrid)
                 else:
                     cand = self._brute(np.arange(H.n), z[j], V[j], t[j], float(fstate[1]))
                 c = self._score(np.full(cand.size, j), cand, blk, hyp, cfg)

@@ -30,7 +30,7 @@ from numba import njit, prange
 
 from tracker.association.cell_lists import relink
 from tracker.gating.grid import counting_order
-from tracker.models.motion import MOTION_CV, cv_cov_entry, cv_mean_entry
+from tracker.models.motion import MOTION_CV, MOTION_STATIC, cv_cov_entry, cv_mean_entry
 from tracker.models.sfunc import KIND_EXP, log_s_ratio_code
 
 DONE, CONFLICT, WIDEN = 0, 1, 2
@@ -511,7 +511,7 @@ def _widen_here(j, blk, hyp, istate, fstate, cfg, hgrid):
     if not terrain or s_kind != KIND_EXP:
         return False
     Hm, Hc, Hlogc = hyp[0], hyp[1], hyp[2]
-    cand = widened_gate(j, fstate[1], blk[0], blk[1], Hm, Hc, istate[0], blk[6], hgrid)
+    cand = widened_gate(j, fstate[1], blk[0], blk[1], blk[2], Hm, Hc, hyp[4], istate[0], blk[6], hgrid)
     nc = cand.shape[0]
     D = Hm.shape[1]
     c_score = np.full(nc, -np.inf)
@@ -620,23 +620,16 @@ def _scan(h, k, z, V, gamma, Hm, Hc, nxt, out, n):
     """The hypotheses of the list starting at h that gate report k at d² <= gamma, into ``out`` from n
     on (as many as fit); returns the new count."""
     while h >= 0:
-        n = _scan_one(h, k, z, V, gamma, Hm, Hc, out, n)
+        s00 = Hc[h, 0, 0] + V[k, 0, 0]
+        s01 = Hc[h, 0, 1] + V[k, 0, 1]
+        s11 = Hc[h, 1, 1] + V[k, 1, 1]
+        dx = z[k, 0] - Hm[h, 0]
+        dy = z[k, 1] - Hm[h, 1]
+        if (s11 * dx * dx - 2.0 * s01 * dx * dy + s00 * dy * dy) <= gamma * (s00 * s11 - s01 * s01):
+            if n < out.shape[0]:
+                out[n] = h
+            n += 1
         h = nxt[h]
-    return n
-
-
-@njit(cache=True, inline="always")
-def _scan_one(h, k, z, V, gamma, Hm, Hc, out, n):
-    """Hypothesis h into ``out[n]`` (if it fits) when it gates report k at d² <= gamma; returns the new count."""
-    s00 = Hc[h, 0, 0] + V[k, 0, 0]
-    s01 = Hc[h, 0, 1] + V[k, 0, 1]
-    s11 = Hc[h, 1, 1] + V[k, 1, 1]
-    dx = z[k, 0] - Hm[h, 0]
-    dy = z[k, 1] - Hm[h, 1]
-    if (s11 * dx * dx - 2.0 * s01 * dx * dy + s00 * dy * dy) <= gamma * (s00 * s11 - s01 * s01):
-        if n < out.shape[0]:
-            out[n] = h
-        n += 1
     return n
 
 
@@ -674,7 +667,7 @@ def _grid_query(k, z, V, gamma, Hm, Hc, hgrid, out):
 
 
 @njit(cache=True)
-def widened_gate(j, gamma, z, V, Hm, Hc, n, assign, hgrid):
+def widened_gate(j, gamma, z, V, t, Hm, Hc, Ht, n, assign, hgrid):
     """Static hypotheses h < n gating report j of a block at d² <= gamma (a widened gate), ascending:
     the grid's query, plus the hypotheses assigned to the block's reports before j, tested one by one
     (the grid places them at the block's end, so it may hold them at a cell they have left, or not
@@ -689,15 +682,18 @@ def widened_gate(j, gamma, z, V, Hm, Hc, n, assign, hgrid):
         out = np.empty(n, np.int64)
         c = 0
         for h in range(n):
-            c = _scan_one(h, j, z, V, gamma, Hm, Hc, out, c)
+            if _in_gate(Hm, Hc, Ht, h, z, V, j, t, MOTION_STATIC, 0.0, gamma):
+                out[c] = h
+                c += 1
         return out[:c]
     cnt = _grid_query(j, z, V, gamma, Hm, Hc, hgrid, np.empty(0, np.int64))
     out = np.empty(cnt + j, np.int64)
     _grid_query(j, z, V, gamma, Hm, Hc, hgrid, out)
     c = cnt
     for i in range(j):
-        if assign[i] >= 0:
-            c = _scan_one(assign[i], j, z, V, gamma, Hm, Hc, out, c)
+        if assign[i] >= 0 and _in_gate(Hm, Hc, Ht, assign[i], z, V, j, t, MOTION_STATIC, 0.0, gamma):
+            out[c] = assign[i]
+            c += 1
     return np.unique(out[:c])
 
 

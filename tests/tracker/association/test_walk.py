@@ -96,7 +96,7 @@ def test_widened_gate_equals_brute_force(seed, placed, new, extra, gamma):
     Hm[moved] += rng.normal(0, 800.0, (moved.size, 2))
     Hc[moved] *= 0.5  # fusion only shrinks a static covariance
     z[j] = Hm[rng.integers(0, n)] + rng.normal(0.0, 100.0, 2)  # near one, moved or new or neither
-    got = widened_gate(j, gamma, z, V, Hm, Hc, n, assign, grid.arrays)
+    got = widened_gate(j, gamma, z, V, np.zeros(m), Hm, Hc, np.zeros(n), n, assign, grid.arrays)
     assert got.tolist() == sorted(h for _, h in _brute(Hm, Hc, z[j : j + 1], V[j : j + 1], gamma))
 
 
