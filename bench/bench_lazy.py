@@ -190,15 +190,11 @@ def track_file(folder: str, windowed: bool) -> dict:
 
 
 def _tt(prior, reports) -> dict:
-    """TT over ``reports`` in chunks of 50,000 (bench_tracker's stream): wall seconds, integrals and the
+    """TT over ``reports`` as bench_tracker streams them (chunks of 50,000): wall seconds, integrals and the
     seconds the tracker spent in them (``timings_["integrals"]``: the rate the goal compares)."""
-    from tracker.association.greedy import Tracker
+    from bench.bench_tracker import _stream
 
-    tr = Tracker(prior, "TT", tau=-1.7, off_prior="skip")
-    t0 = time.perf_counter()
-    for lo in range(0, len(reports), 50_000):
-        tr.update(reports.subset(slice(lo, lo + 50_000)))
-    wall = time.perf_counter() - t0
+    wall, tr, _ = _stream(prior, reports, "TT")
     n, sec = int(tr.stats_["integrals"]), float(tr.timings_["integrals"])
     return {"wall_s": wall, "integrals": n, "integral_s": sec, "per_s": n / sec, "n_detected": int(tr.n_detected_),
             "skipped": int(tr.stats_["skipped"]), "widened": int(tr.stats_["widened"])}

@@ -634,6 +634,17 @@ def _scan(h, k, z, V, gamma, Hm, Hc, nxt, out, n):
 
 
 @njit(cache=True, inline="always")
+def _query_square(k, z, V, gamma, geo):
+    """λ_max(V_k) and the cells (cx0, cx1, cy0, cy1) of the square of half-side √(γ(λ_max(V_k) + lam_a))
+    around report k (see :func:`_grid_query`)."""
+    x0, y0, cell, nx, ny = geo[0], geo[1], geo[2], geo[3], geo[4]
+    lam_v = _lam_max(V[k, 0, 0], V[k, 0, 1], V[k, 1, 1])
+    radius = math.sqrt(gamma * (lam_v + geo[5])) * (1.0 + 1e-9)
+    return (lam_v, _cell_index(z[k, 0] - radius, x0, cell, nx), _cell_index(z[k, 0] + radius, x0, cell, nx),
+            _cell_index(z[k, 1] - radius, y0, cell, ny), _cell_index(z[k, 1] + radius, y0, cell, ny))
+
+
+@njit(cache=True, inline="always")
 def _grid_query(k, z, V, gamma, Hm, Hc, hgrid, out):
     """Hypotheses of the grid gating report k at d² <= gamma, into ``out`` (as many as fit: pass an empty
     one to count); returns their number. A gated mean a is within √(γ(λ_max(V_k) + λ_max(A))) of z,
@@ -643,12 +654,7 @@ def _grid_query(k, z, V, gamma, Hm, Hc, hgrid, out):
     whole."""
     geo, head, nxt, cell_lam = hgrid[0], hgrid[1], hgrid[2], hgrid[5]
     x0, y0, cell, nx, ny = geo[0], geo[1], geo[2], geo[3], geo[4]
-    lam_v = _lam_max(V[k, 0, 0], V[k, 0, 1], V[k, 1, 1])
-    radius = math.sqrt(gamma * (lam_v + geo[5])) * (1.0 + 1e-9)
-    cx0 = _cell_index(z[k, 0] - radius, x0, cell, nx)
-    cx1 = _cell_index(z[k, 0] + radius, x0, cell, nx)
-    cy0 = _cell_index(z[k, 1] - radius, y0, cell, ny)
-    cy1 = _cell_index(z[k, 1] + radius, y0, cell, ny)
+    lam_v, cx0, cx1, cy0, cy1 = _query_square(k, z, V, gamma, geo)
     # z in cell units, as _cell_index computes them; the 1e-8 slack covers their rounding (~1e-16 relative)
     u = (z[k, 0] - x0) / cell
     w = (z[k, 1] - y0) / cell
@@ -672,13 +678,8 @@ def widened_gate(j, gamma, z, V, t, Hm, Hc, Ht, n, assign, hgrid):
     the grid's query, plus the hypotheses assigned to the block's reports before j, tested one by one
     (the grid places them at the block's end, so it may hold them at a cell they have left, or not
     at all). A query square of more cells than there are hypotheses tests all n instead."""
-    geo = hgrid[0]
-    x0, y0, cell, nx, ny = geo[0], geo[1], geo[2], geo[3], geo[4]
-    lam_v = _lam_max(V[j, 0, 0], V[j, 0, 1], V[j, 1, 1])
-    radius = math.sqrt(gamma * (lam_v + geo[5])) * (1.0 + 1e-9)
-    span_x = _cell_index(z[j, 0] + radius, x0, cell, nx) - _cell_index(z[j, 0] - radius, x0, cell, nx) + 1
-    span_y = _cell_index(z[j, 1] + radius, y0, cell, ny) - _cell_index(z[j, 1] - radius, y0, cell, ny) + 1
-    if span_x * span_y > n:
+    _, cx0, cx1, cy0, cy1 = _query_square(j, z, V, gamma, hgrid[0])
+    if (cx1 - cx0 + 1) * (cy1 - cy0 + 1) > n:
         out = np.empty(n, np.int64)
         c = 0
         for h in range(n):

@@ -635,35 +635,37 @@ def window_groups(u: np.ndarray, v: np.ndarray, reach_u: np.ndarray, reach_v: np
     return order, group, bounds
 
 
+@nb.njit(cache=True, inline="always")
+def _home_axis(x: float, reach: float, n: int, b: int, pad: int):
+    """One axis of :func:`home_blocks`: the block of x and whether [floor(x - reach), floor(x + reach) + 1),
+    clipped to [0, n], lies within that block's cells padded by ``pad`` (clipped to [0, n])."""
+    k = int(min(max(math.floor(x / b), 0.0), float((n - 1) // b)))
+    lo = min(max(math.floor(x - reach), 0.0), float(n))
+    hi = min(max(math.floor(x + reach) + 1.0, 0.0), float(n))
+    return k, lo >= max(k * b - pad, 0) and hi <= min(k * b + b + pad, n)
+
+
 @nb.njit(cache=True)
 def home_blocks(u, v, reach, h: int, w: int, b: int, pad: int):
     """(block, fits) of :meth:`LazyPyramid._home_blocks` for points (u, v) (pixels) on an (h, w) grid of
-    ``b``-cell blocks: per axis the block is floor(x / b) clipped to the grid's blocks, and the point
-    fits when floor(x - reach) and floor(x + reach) + 1, clipped to [0, n], lie within the block's
-    cells padded by ``pad`` (clipped to [0, n])."""
+    ``b``-cell blocks (row-major block numbers; :func:`_home_axis` per axis)."""
     m = u.shape[0]
     block = np.empty(m, np.int64)
     fits = np.empty(m, np.bool_)
     across = (w - 1) // b + 1
     for i in range(m):
-        ok = True
-        first = np.empty(2, np.int64)
-        for axis in range(2):
-            x, n = (v[i], h) if axis == 0 else (u[i], w)
-            k = min(max(math.floor(x / b), 0.0), float((n - 1) // b))
-            first[axis] = int(k)
-            lo = min(max(math.floor(x - reach[i]), 0.0), float(n))
-            hi = min(max(math.floor(x + reach[i]) + 1.0, 0.0), float(n))
-            ok = ok and lo >= max(first[axis] * b - pad, 0) and hi <= min(first[axis] * b + b + pad, n)
-        block[i] = first[0] * across + first[1]
-        fits[i] = ok
+        kv, fit_v = _home_axis(v[i], reach[i], h, b, pad)
+        ku, fit_u = _home_axis(u[i], reach[i], w, b, pad)
+        block[i] = kv * across + ku
+        fits[i] = fit_v and fit_u
     return block, fits
 
 
 def huge_zeros(shape: tuple[int, ...], dtype) -> np.ndarray:
-    """A zeroed array on anonymous memory advised for transparent huge pages where the kernel offers
-    them (Linux ``madvise`` mode): a pool filled block by block then faults 2 MiB pages, not 4 KiB ones
-    (first touches were most of a cold tile's insertion)."""
+    """A zeroed array on anonymous memory advised for transparent huge pages (Linux ``madvise`` mode): where
+    the kernel grants them, a pool filled block by block faults 2 MiB pages, not 4 KiB ones (first
+    touches are much of a cold tile's insertion). The bench VM grants none; its anonymous mapping still
+    faulted 1.8x faster than ``np.zeros`` (docs/terrace.md, Session 12)."""
     count = int(np.prod(shape))
     buf = mmap.mmap(-1, max(count * np.dtype(dtype).itemsize, 1))
     if hasattr(mmap, "MADV_HUGEPAGE"):
