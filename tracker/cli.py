@@ -133,9 +133,10 @@ def cmd_experiment(args: argparse.Namespace) -> None:
         print(f"{v}: best tau {d['best_tau']:+.2f}, mean score x10^4.5 {d['best_mean_score_x10^4.5']:.2f}, "
               f"|N_D^ - N_D| {d['mean_nd_abs_error_at_best_tau']:.2f}"
               + (f"; exact S: {d['poisson_mean_score_x10^4.5']:.2f}" if "poisson_mean_score_x10^4.5" in d else ""))
-    for v, d in summary["batch_vs_greedy"].items():
-        print(f"{v} batch vs greedy: P(better score) {d['prob_better_score_best_tau']:.3f}, "
-              f"P(better |N_D^ - N_D|) {d['prob_better_nd_error_best_tau']:.3f}, min ln p gain {d['min_log_posterior_gain']:.3g}")
+    for method in ("batch", "posterior"):
+        for v, d in summary[f"{method}_vs_greedy"].items():
+            print(f"{v} {method} vs greedy: P(better score) {d['prob_better_score_best_tau']:.3f}, "
+                  f"P(better |N_D^ - N_D|) {d['prob_better_nd_error_best_tau']:.3f}, min ln p gain {d['min_log_posterior_gain']:.3g}")
     print(f"wrote {paths['results']}, {paths['summary']}, {paths['table']} and {len(paths['figures'])} figures")
 
 
@@ -146,7 +147,9 @@ def add_experiment_parser(sub, quiet: argparse.ArgumentParser) -> None:
     p.add_argument("--reports", type=int, default=100, help="reports per data set; default 100")
     p.add_argument("--tau", default="-3:3:0.25", help="start:stop:step (stop included) or a comma list; default -3:3:0.25")
     p.add_argument("--variants", default="UU,UT,TT", help="comma list of UU, UT, TT")
-    p.add_argument("--methods", default="greedy", help="comma list of greedy, batch (batch: MAP search from greedy's partition)")
+    p.add_argument("--methods", default="greedy", help="comma list of greedy, batch, posterior (batch: MAP search from greedy's "
+                   "partition; posterior: batch's Bayes estimates from a posterior sample started at the MAP, "
+                   "the posterior-mean mixture and the posterior median of N_D)")
     p.add_argument("--targets", type=int, default=200, help="targets drawn over the 14 km region before the window "
                    "(with --targets-file: picked among the file's locations in the window); default 200")
     add_targets_file_arguments(p)

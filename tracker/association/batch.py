@@ -204,6 +204,7 @@ class BatchResult:
     posterior probability of belonging to its cluster (see :meth:`BatchAssociator.fit`; 1 in map
     mode). Sampling mode: ``pairs`` (P,2) gated report pairs i < j with ``pair_prob`` (P,) the
     posterior P(i and j from one target), and ``nd_values`` / ``nd_prob`` the posterior of N_D.
+    ``samples`` (S, K) int32: the sampled partitions' labels, when the associator keeps them.
     ``trace`` ln p per sweep; ``stats`` counters."""
 
     labels: np.ndarray
@@ -215,6 +216,7 @@ class BatchResult:
     pair_prob: np.ndarray = field(default_factory=lambda: np.zeros(0))
     nd_values: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     nd_prob: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    samples: np.ndarray = field(default_factory=lambda: np.zeros((0, 0), np.int32))
     trace: list = field(default_factory=list)
     stats: dict = field(default_factory=dict)
 
@@ -500,8 +502,8 @@ class BatchAssociator:
     singletons) ``anneal`` Gibbs sweeps with inverse temperature rising geometrically from 1 to
     ``beta_max``, then zero-temperature sweeps (ICM) to convergence (at most ``icm_max``); the best
     state visited wins. Sample mode: ``burn_in`` sweeps then ``samples`` sweeps, one sample each.
-    ``split_merge`` proposals per sweep with ``launch`` restricted-Gibbs launch scans. ``seed`` for a
-    ``numpy.random.Generator``; ``progress`` shows tqdm over sweeps. ``table=True`` (K <= 20, tests)
+    ``split_merge`` proposals per sweep with ``launch`` restricted-Gibbs launch scans; ``keep_samples``
+    keeps every sampled partition (``BatchResult.samples``). ``seed`` for a ``numpy.random.Generator``; ``progress`` shows tqdm over sweeps. ``table=True`` (K <= 20, tests)
     precomputes ln L for all 2^K subsets in one integrate call; otherwise ``cache`` (None: when K <=
     :data:`CACHE_MAX_K`) memoises each cluster's ln L by its member set for the fit. Rounds gate through the chain's cluster
     index (:class:`~tracker.association.cluster_index.ClusterIndex`, the gater's exact test); a ``gater``
@@ -514,7 +516,8 @@ class BatchAssociator:
         self, prior: TerrainPrior, variant: str = "TT", tau: float | None = None, s_model: SModel | None = None,
         mode: str = "map", gamma: float = DEFAULT_GAMMA, chunk: int = CHUNK, anneal: int = 20, beta_max: float = 50.0,
         icm_max: int = 50, restarts: int = 2, burn_in: int = 20, samples: int = 200, split_merge: int = 0,
-        launch: int = 3, seed: int = 0, progress: bool = False, table: bool = False, cache: bool | None = None,
+        launch: int = 3, seed: int = 0, keep_samples: bool = False, progress: bool = False, table: bool = False,
+        cache: bool | None = None,
         integrator: Integrator | None = None, gater: Gater | None = None,
     ) -> None:
         _check_variant(variant)
@@ -531,6 +534,7 @@ class BatchAssociator:
         self.anneal, self.beta_max, self.icm_max, self.restarts = int(anneal), float(beta_max), int(icm_max), int(restarts)
         self.burn_in, self.samples, self.n_split_merge, self.launch = int(burn_in), int(samples), int(split_merge), int(launch)
         self.seed, self.progress, self.use_table, self.cache = seed, progress, table, cache
+        self.keep_samples = bool(keep_samples)
         # rounds are small: one numba thread below 4096 rows, as in greedy
         self.integrator = one_thread_when_small(integrator or _default_integrator(), 1)
         self.gater = one_thread_when_small(gater or _default_gater(), 2)
@@ -623,6 +627,8 @@ class BatchAssociator:
         res.pairs, res.pair_prob = pairs, co / max(len(kept), 1)
         res.nd_values, counts = np.unique(np.array(nd, np.int64), return_counts=True)
         res.nd_prob = counts / max(len(kept), 1)
+        if self.keep_samples:
+            res.samples = np.array(kept, np.int32).reshape(len(kept), len(reports))
         return res
 
     def _pairs(self, rs: ReportStats) -> np.ndarray:

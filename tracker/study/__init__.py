@@ -22,6 +22,8 @@ _EXPORTS = {
     "batch_nd": "experiment",
     "map_convergence": "experiment",
     "posterior_median": "experiment",
+    "posterior_mixture": "experiment",
+    "fuse_sets": "experiment",
     "comparison_table": "compare",
     "parse_taus": "experiment",
     "ExperimentConfig": "experiment",

@@ -46,10 +46,13 @@ from tracker.study.simulate import (
     simulate,
     simulate_points,
 )
+from tracker.types import Estimate, Reports
 
 VARIANTS = ("UU", "UT", "TT")
-METHODS = ("greedy", "batch")
-"""Association methods: paper 1's greedy tracker, and the batch MAP search started from it."""
+METHODS = ("greedy", "batch", "posterior")
+"""Association methods: paper 1's greedy tracker; batch, the MAP search started from it; posterior,
+batch's Bayes estimates from a posterior sample started at the MAP (the posterior-mean mixture for
+the Score, the posterior median of N_D)."""
 
 
 def parse_taus(spec: str) -> tuple[float, ...]:
@@ -98,11 +101,12 @@ class ExperimentConfig:
     renormalised (:func:`window_prior`; UU: uniform over the window), where the design puts every
     target. Greedy keeps r over the whole grid, as in the paper."""
     batch_nd_samples: int = 100
-    """With the exact S, N̂_D of batch is the posterior median of N_D (the Bayes estimate under
-    |N̂_D − N_D|), from ``batch_nd_burn_in`` + ``batch_nd_samples`` sampling sweeps started at the MAP
-    partition (:func:`add_batch_nd`). At a τ, S = e^{−nτ} is a tuned penalty, not a count prior, so
-    batch's N̂_D there is the MAP partition's cluster count, like greedy's. 0: no sampling (the MAP
-    count everywhere)."""
+    """The posterior sample of batch's model: ``batch_nd_burn_in`` + ``batch_nd_samples`` sampling
+    sweeps started at the MAP partition. The posterior method estimates from it at every S. For the
+    batch method, with the exact S, N̂_D is its posterior median of N_D (the Bayes estimate under
+    |N̂_D − N_D|, :func:`add_batch_nd`); at a τ batch's N̂_D is the MAP partition's cluster count, like
+    greedy's. 0: no sampling for the batch method (the MAP count everywhere); the posterior method
+    needs at least 1."""
     batch_nd_burn_in: int = 10
 
     def __post_init__(self) -> None:
@@ -120,6 +124,8 @@ class ExperimentConfig:
         bad = [m for m in self.methods if m not in METHODS]
         if bad or not self.methods:
             raise ValueError(f"methods {bad or '(none)'} unknown; choose from {METHODS}")
+        if "posterior" in self.methods and self.batch_nd_samples < 1:
+            raise ValueError(f"methods posterior needs batch_nd_samples >= 1, got {self.batch_nd_samples}")
 
     @property
     def seeds(self) -> list[int]:
@@ -223,6 +229,14 @@ class CachedIntegrator:
         return np.array(values, dtype=np.float64)
 
 
+def member_sets(assignment: np.ndarray, n: int) -> list[bytes]:
+    """Per hypothesis 0..n−1, the indices of its reports (``assignment == q``) as ascending int32 bytes."""
+    order = np.argsort(assignment, kind="stable")
+    bounds = (4 * np.searchsorted(assignment[order], np.arange(n + 1))).tolist()
+    blob = order.astype(np.int32).tobytes()  # report indices grouped by hypothesis, 4 bytes each
+    return [blob[bounds[q]:bounds[q + 1]] for q in range(n)]
+
+
 class _Components:
     """Distinct mixture components of one data set, keyed by (fused report set, terrain flag)."""
 
@@ -234,12 +248,13 @@ class _Components:
 
     def register(self, assignment: np.ndarray, means: np.ndarray, covs: np.ndarray, terrain: bool) -> np.ndarray:
         """Component indices of hypotheses 0..len(means)-1, whose reports are ``assignment == q``."""
-        order = np.argsort(assignment, kind="stable")
-        bounds = (4 * np.searchsorted(assignment[order], np.arange(len(means) + 1))).tolist()
-        blob = order.astype(np.int32).tobytes()  # report indices grouped by hypothesis, 4 bytes each
-        out = np.empty(len(means), dtype=np.intp)
-        for q in range(len(means)):
-            key = (blob[bounds[q]:bounds[q + 1]], terrain)
+        return self.register_sets(member_sets(assignment, len(means)), means, covs, terrain)
+
+    def register_sets(self, sets: Sequence[bytes], means: np.ndarray, covs: np.ndarray, terrain: bool) -> np.ndarray:
+        """Component indices of the clusters whose report indices (ascending int32 bytes) are ``sets``."""
+        out = np.empty(len(sets), dtype=np.intp)
+        for q, members in enumerate(sets):
+            key = (members, terrain)
             idx = self.index.get(key)
             if idx is None:
                 idx = self.index[key] = len(self.means)
@@ -288,17 +303,18 @@ class _Context:
     model_prior: TerrainPrior
     model_integrator: CachedIntegrator
     config: ExperimentConfig
+    seed: int
     runs: dict = field(default_factory=dict)
 
 
-def _context(prior_path: str, reports, config: ExperimentConfig, integrator: CachedIntegrator) -> _Context:
+def _context(prior_path: str, reports, config: ExperimentConfig, integrator: CachedIntegrator, seed: int) -> _Context:
     prior = integrator.prior
     model_prior = prior
     model_integrator = integrator
-    if config.batch_window and "batch" in config.methods:
+    if config.batch_window and {"batch", "posterior"} & set(config.methods):
         model_prior = _load_window_prior(prior_path, config.region_m, config.keep_fraction)
         model_integrator = CachedIntegrator(model_prior, partial(integrate_checked, method=config.integrator))
-    return _Context(prior, reports, integrator, model_prior, model_integrator, config)
+    return _Context(prior, reports, integrator, model_prior, model_integrator, config, seed)
 
 
 def run_dataset(prior_path: str | os.PathLike, seed: int, config: ExperimentConfig) -> list[dict]:
@@ -319,7 +335,7 @@ def run_dataset(prior_path: str | os.PathLike, seed: int, config: ExperimentConf
     sc = _scenario(prior, seed, config)
     reports = sc.reports
     integrator = CachedIntegrator(prior, partial(integrate_checked, method=config.integrator))
-    ctx = _context(str(prior_path), reports, config, integrator)
+    ctx = _context(str(prior_path), reports, config, integrator, seed)
     comps = _Components()
     perfect = perfect_estimate(prior, reports, terrain=True, integrator=integrator)
     ref = comps.register(np.searchsorted(perfect.labels, reports.truth), perfect.means, perfect.covs, True)
@@ -334,10 +350,15 @@ def run_dataset(prior_path: str | os.PathLike, seed: int, config: ExperimentConf
             for method in config.methods:
                 res = _run(ctx, method, assoc_variant, s_model)
                 est = res.estimate
-                members = comps.register(res.assignments, est.means, est.covs, variant != "UU")
-                evaluations.append((variant, method, label, tau, res, members))
+                terrain = variant != "UU"
+                members = comps.register(res.assignments, est.means, est.covs, terrain)
+                scored = (members, None)  # the partition's equally weighted mixture
+                if res.mixture is not None:
+                    sets, means, covs, weights = res.mixture
+                    scored = (comps.register_sets(sets, means, covs, terrain), weights)
+                evaluations.append((variant, method, label, tau, res, members, scored))
 
-    gram = comps.gram(prior, integrator, (np.concatenate([members, ref]) for *_, members in evaluations))
+    gram = comps.gram(prior, integrator, (np.concatenate([scored[0], ref]) for *_, scored in evaluations))
     n = len(comps.means)
     w_ref = mixture_weights(n, ref, -1.0)
     # Point estimates for GOSPA/OSPA: each component's mean (the terrain posterior's for UT/TT).
@@ -347,8 +368,9 @@ def run_dataset(prior_path: str | os.PathLike, seed: int, config: ExperimentConf
     records = []
     # Point metrics once per distinct (association, estimate kind): τ runs often agree.
     assoc_metrics: dict[tuple[bytes, bool], dict] = {}
-    for variant, method, label, tau, res, members in evaluations:
-        s, err = gram.score(mixture_weights(n, members) + w_ref)
+    for variant, method, label, tau, res, members, (scored, weights) in evaluations:
+        w = mixture_weights(n, scored) if weights is None else np.bincount(scored, weights, minlength=n)
+        s, err = gram.score(w + w_ref)
         key = (res.assignments.tobytes(), variant != "UU")
         if key not in assoc_metrics:
             on = res.assignments >= 0
@@ -379,14 +401,16 @@ def algorithm_name(variant: str, method: str) -> str:
 @dataclass(frozen=True)
 class _Run:
     """One association of a data set: ``assignments`` (K,) (−1: skipped), the fused Gaussians
-    ``estimate`` (row q = hypothesis q), ln p(Λ|Z) + const under the associating model, and that of
-    greedy's partition under the same model."""
+    ``estimate`` (row q = hypothesis q), its N̂_D, ln p(Λ|Z) + const under the associating model, and that
+    of greedy's partition under the same model. ``mixture`` (the posterior method): the scored estimate
+    instead of the partition's, as (member sets, fused means, covariances, weights)."""
 
     assignments: np.ndarray
     estimate: object
     n_detected: int
     log_posterior: float
     greedy_log_posterior: float
+    mixture: tuple | None = None
 
 
 def _run(ctx: _Context, method: str, variant: str, s_model: SModel) -> _Run:
@@ -402,6 +426,15 @@ def _run(ctx: _Context, method: str, variant: str, s_model: SModel) -> _Run:
         lp = log_posterior(ctx.prior, reports.subset(np.flatnonzero(on)), res.assignments[on], s_model, variant, ctx.integrator)
         ctx.runs[key] = _Run(res.assignments, res.estimate, int(res.n_detected), lp, lp)
         return ctx.runs[key]
+    if method == "posterior":
+        mapped = _run(ctx, "batch", variant, s_model)
+        kept = np.flatnonzero(mapped.assignments >= 0)
+        sample = _posterior_sample(ctx, variant, s_model)
+        sets, weights = posterior_mixture(sample.samples, kept, len(reports))
+        fused = fuse_sets(ctx.prior, reports, sets)
+        ctx.runs[key] = _Run(mapped.assignments, mapped.estimate, posterior_median(sample.nd_values, sample.nd_prob),
+                             mapped.log_posterior, mapped.greedy_log_posterior, (sets, fused.means, fused.covs, weights))
+        return ctx.runs[key]
     greedy = _run(ctx, "greedy", variant, s_model)
     kept, init = _batch_start(ctx, greedy.assignments, variant)
     sub = reports.subset(kept)
@@ -413,6 +446,45 @@ def _run(ctx: _Context, method: str, variant: str, s_model: SModel) -> _Run:
     est = batch_estimate(ctx.prior, sub, res.labels, "UU", ctx.integrator)
     ctx.runs[key] = _Run(assignments, est, res.n_detected, res.log_posterior, res.greedy_log_posterior)
     return ctx.runs[key]
+
+
+def _posterior_sample(ctx: _Context, variant: str, s_model: SModel):
+    """The (memoised) posterior sample under batch's model: ``batch_nd_burn_in`` + ``batch_nd_samples``
+    sampling sweeps (one split–merge proposal each, seeded by the data set) from the MAP partition."""
+    key = ("sample", variant, s_model)
+    if key not in ctx.runs:
+        mapped = _run(ctx, "batch", variant, s_model)
+        kept = np.flatnonzero(mapped.assignments >= 0)
+        config = ctx.config
+        ctx.runs[key] = BatchAssociator(
+            ctx.model_prior, variant, s_model=s_model, mode="sample", burn_in=config.batch_nd_burn_in,
+            samples=config.batch_nd_samples, split_merge=1, seed=ctx.seed, keep_samples=True,
+            integrator=ctx.model_integrator).fit(ctx.reports.subset(kept), init=mapped.assignments[kept])
+    return ctx.runs[key]
+
+
+def posterior_mixture(samples: np.ndarray, kept: np.ndarray, n_reports: int) -> tuple[list[bytes], np.ndarray]:
+    """The posterior-mean mixture of sampled partitions ``samples`` (S, len(kept)) of the reports
+    ``kept`` (ascending indices among ``n_reports``): its distinct clusters as member sets (ascending
+    int32 bytes of report indices) and their weights, the mean over samples of 1[C ∈ Λ_s] / n_s."""
+    weights: dict[bytes, float] = {}
+    full = np.full(n_reports, -1, np.int64)
+    for labels in samples:
+        full[kept] = np.unique(labels, return_inverse=True)[1]
+        n = int(full.max()) + 1
+        for members in member_sets(full, n):
+            weights[members] = weights.get(members, 0.0) + 1.0 / (n * len(samples))
+    return list(weights), np.fromiter(weights.values(), np.float64, len(weights))
+
+
+def fuse_sets(prior: TerrainPrior, reports: Reports, sets: Sequence[bytes]) -> Estimate:
+    """The fused Gaussians (information form, :func:`perfect_estimate`) of possibly overlapping report
+    sets ``sets`` (ascending int32 bytes of report indices); row q fuses ``sets[q]``."""
+    members = [np.frombuffer(m, np.int32) for m in sets]
+    rows = np.concatenate(members)
+    group = np.repeat(np.arange(len(sets)), [m.size for m in members])
+    stacked = Reports(reports.means[rows], reports.covs[rows], reports.times[rows], group)
+    return perfect_estimate(prior, stacked, terrain=False)
 
 
 def _batch_start(ctx: _Context, greedy_assignments: np.ndarray, variant: str) -> tuple[np.ndarray, np.ndarray]:
@@ -435,26 +507,20 @@ def _batch_dataset(prior_path: str | os.PathLike, seed: int, config: ExperimentC
     """Data set ``seed``'s reports, its association context and its S models keyed by (label, τ or None)."""
     prior = _load_prior(str(prior_path))
     reports = _scenario(prior, seed, config).reports
-    ctx = _context(str(prior_path), reports, config, CachedIntegrator(prior, partial(integrate_checked, method=config.integrator)))
+    ctx = _context(str(prior_path), reports, config, CachedIntegrator(prior, partial(integrate_checked, method=config.integrator)), seed)
     return reports, ctx, {(label, tau if label == "exp" else None): s for label, tau, s in _settings(config)}
 
 
 def batch_nd(prior_path: str | os.PathLike, seed: int, config: ExperimentConfig,
              wanted: Sequence[tuple[str, str, float | None]]) -> list[dict]:
     """The posterior of N_D for data set ``seed`` under batch's model, per (associating variant,
-    s_model label, τ) in ``wanted`` (τ None for "poisson", the experiment's only use): ``batch_nd_burn_in`` + ``batch_nd_samples``
-    sampling sweeps (one split–merge proposal each) from the MAP partition of :func:`run_dataset`.
-    Records: seed, assoc_variant, s_model, tau (+inf for "poisson"), nd_hat_bayes (posterior median),
-    nd_posterior_mean."""
-    reports, ctx, models = _batch_dataset(prior_path, seed, config)
+    s_model label, τ) in ``wanted`` (τ None for "poisson", the experiment's only use), from the posterior
+    method's sample (:func:`_posterior_sample`). Records: seed, assoc_variant, s_model, tau (+inf for
+    "poisson"), nd_hat_bayes (posterior median), nd_posterior_mean."""
+    _, ctx, models = _batch_dataset(prior_path, seed, config)
     out = []
     for variant, label, tau in wanted:
-        s_model = models[(label, tau)]
-        mapped = _run(ctx, "batch", variant, s_model)
-        kept = np.flatnonzero(mapped.assignments >= 0)
-        res = BatchAssociator(ctx.model_prior, variant, s_model=s_model, mode="sample", burn_in=config.batch_nd_burn_in,
-                              samples=config.batch_nd_samples, split_merge=1, seed=seed,
-                              integrator=ctx.model_integrator).fit(reports.subset(kept), init=mapped.assignments[kept])
+        res = _posterior_sample(ctx, variant, models[(label, tau)])
         out.append({"seed": int(seed), "assoc_variant": variant, "s_model": label, "tau": np.inf if tau is None else tau,
                     "nd_hat_bayes": posterior_median(res.nd_values, res.nd_prob),
                     "nd_posterior_mean": float(res.nd_values @ res.nd_prob)})
@@ -603,6 +669,7 @@ def summarise(results: pd.DataFrame, config: ExperimentConfig) -> dict:
         "table_t": comparison_table(scores, "t", variants),
         "paper_table": PAPER_TABLE,
         "batch_vs_greedy": batch_vs_greedy(results, poisson, scores),
+        "posterior_vs_greedy": batch_vs_greedy(results, poisson, scores, "posterior"),
     }
 
 
@@ -613,19 +680,22 @@ def _column_at(results: pd.DataFrame, algorithm: str, tau: float, column: str) -
     return rows.sort_values("seed")[column].to_numpy(dtype=np.float64)
 
 
-def batch_vs_greedy(results: pd.DataFrame, poisson: pd.DataFrame, scores: dict[str, np.ndarray]) -> dict:
-    """Appendix B for batch against greedy, per variant run by both, each algorithm at its own τ* (the
-    best mean-Score τ) and, with Poisson rows, with the exact S: P(batch better) on Score and on
-    |N̂_D − N_D| (greedy's N̂_D its count; batch's at τ* its MAP count, with the exact S the posterior
-    median ``nd_abs_error_bayes`` when present, keys ``exact_s_map_count`` with the MAP count); ln p(Λ|Z) of batch minus that of
-    greedy's partition under batch's model per (data set, S) (``min_log_posterior_gain`` ≥ 0 when batch is
-    never below greedy); for UU, the share of the UU → TT greedy gap in mean Score (τ*) that batch UU closes."""
+def batch_vs_greedy(results: pd.DataFrame, poisson: pd.DataFrame, scores: dict[str, np.ndarray],
+                    method: str = "batch") -> dict:
+    """Appendix B for ``method`` (batch or posterior) against greedy, per variant run by both, each
+    algorithm at its own τ* (the best mean-Score τ) and, with Poisson rows, with the exact S: P(method
+    better) on Score and on |N̂_D − N_D| (greedy's N̂_D its count; posterior's its posterior median;
+    batch's at τ* its MAP count, with the exact S the posterior median ``nd_abs_error_bayes`` when
+    present, keys ``exact_s_map_count`` with the MAP count); ln p(Λ|Z) of the MAP partition minus that
+    of greedy's partition under batch's model per (data set, S) (``min_log_posterior_gain`` ≥ 0 when
+    batch is never below greedy); for UU, the share of the UU → TT greedy gap in mean Score (τ*) that
+    the method's UU closes."""
     out: dict[str, dict] = {}
     taus = sorted(results["tau"].unique())
     both = pd.concat([results, poisson])
-    bayes = "nd_abs_error_bayes" in both
+    bayes = method == "batch" and "nd_abs_error_bayes" in both
     for v in VARIANTS:
-        b, g = algorithm_name(v, "batch"), v
+        b, g = algorithm_name(v, method), v
         if b not in scores or g not in scores:
             continue
         tb, tg = (float(taus[best_tau_index(scores[x])]) for x in (b, g))
@@ -662,10 +732,11 @@ def batch_vs_greedy(results: pd.DataFrame, poisson: pd.DataFrame, scores: dict[s
                 row[f"mean_nd_abs_error_{name}{suffix}"] = [float(err_b.mean()), float(err_g.mean())]
         out[v] = row
     if "UU" in out and "TT" in scores:
-        best = {a: float(scores[a][:, best_tau_index(scores[a])].mean()) for a in ("UU", "UU batch", "TT")}
+        uu = algorithm_name("UU", method)
+        best = {a: float(scores[a][:, best_tau_index(scores[a])].mean()) for a in ("UU", uu, "TT")}
         gap = best["UU"] - best["TT"]
-        out["UU"]["share_of_uu_tt_gap_closed"] = (best["UU"] - best["UU batch"]) / gap if gap else None
-        out["UU"]["prob_uu_batch_better_than_tt_greedy"] = compare(scores["UU batch"], scores["TT"], "normal")
+        out["UU"]["share_of_uu_tt_gap_closed"] = (best["UU"] - best[uu]) / gap if gap else None
+        out["UU"]["prob_uu_batch_better_than_tt_greedy"] = compare(scores[uu], scores["TT"], "normal")
     return out
 
 

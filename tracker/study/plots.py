@@ -1,7 +1,7 @@
 """Figures like paper 1's Figures 11–15 (mean score and mean |N̂_D − N_D| versus τ) and Table 1 as text.
 
 Inputs are the experiment's long-format results table (one row per data set, algorithm and τ; the
-``algorithm`` column is the variant for greedy, "TT batch" for batch).
+``algorithm`` column is the variant for greedy, "TT batch" for batch, "TT posterior" for its Bayes estimates).
 Scores are drawn scaled by 10^4.5 per metre, as in the paper.
 """
 
@@ -117,13 +117,15 @@ def _titled(title: str, what: str) -> str:
 
 def write_figures(results: pd.DataFrame, out_dir: Path, prefix: str = "", title: str = "") -> list[Path]:
     """All figures for one experiment into ``out_dir`` (PNG); returns their paths. Curves are per
-    ``algorithm`` ("TT" greedy, "TT batch"); batch shares greedy's |N̂_D − N_D| panels."""
+    ``algorithm`` ("TT" greedy, "TT batch", "TT posterior"); batch and posterior share greedy's
+    |N̂_D − N_D| panels."""
     out_dir = Path(out_dir)
-    names = [f"{v}{m}" for m in ("", " batch") for v in ("UU", "UT", "TT")]
+    names = [f"{v}{m}" for m in ("", " batch", " posterior") for v in ("UU", "UT", "TT")]
     variants = [v for v in names if v in set(results["algorithm"])]
     paths = [score_figure(results, v, out_dir / f"{prefix}score_{v.replace(' ', '_')}.png", _titled(title, f"average scores, {v}"))
              for v in variants]
-    groups = [g for g in (["UU", "UT", "UU batch", "UT batch"], ["TT", "TT batch"]) if set(g) & set(variants)]
+    groups = [g for g in ([f"{v}{m}" for m in ("", " batch", " posterior") for v in ("UU", "UT")],
+                          ["TT", "TT batch", "TT posterior"]) if set(g) & set(variants)]
     for g in groups:
         present = [v for v in g if v in variants]
         paths.append(nd_error_figure(results, present, out_dir / f"{prefix}nd_error_{'_'.join(present).replace(' ', '_')}.png",

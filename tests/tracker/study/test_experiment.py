@@ -10,6 +10,8 @@ import numpy as np
 import pandas as pd
 import pytest
 from affine import Affine
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from pipeline.gis.grid import Grid
 from pipeline.prior.terrain import TerrainPrior
@@ -20,8 +22,10 @@ from tracker.study.experiment import (
     CachedIntegrator,
     ExperimentConfig,
     expected_in_window,
+    fuse_sets,
     parse_taus,
     posterior_median,
+    posterior_mixture,
     run_dataset,
     run_experiment,
     summarise,
@@ -346,3 +350,106 @@ def test_cli_experiment_with_methods(prior_path: str, tmp_path, capsys) -> None:
     assert "TT batch vs greedy" in capsys.readouterr().out
     assert main(["experiment", "--prior", prior_path, "--methods", "greedy,mcmc", "--out", str(out)]) == 1
     assert "mcmc" in capsys.readouterr().err
+
+
+def test_cli_experiment_with_the_posterior_method(prior_path: str, tmp_path, capsys) -> None:
+    from tracker.cli import main
+
+    out = tmp_path / "cli"
+    argv = ["experiment", "--prior", prior_path, "--datasets", "2", "--reports", "15", "--tau", "-2,0",
+            "--targets", "60", "--variants", "TT", "--methods", "greedy,posterior", "--workers", "1", "--quiet",
+            "--out", str(out)]
+    assert main(argv) == 0
+    assert "TT posterior vs greedy: P(better score)" in capsys.readouterr().out
+    results = pd.read_parquet(out / "results.parquet")
+    assert set(results.algorithm) == {"TT", "TT posterior"}
+    summary = json.loads((out / "summary.json").read_text())
+    assert set(summary["posterior_vs_greedy"]) == {"TT"} and summary["batch_vs_greedy"] == {}
+    assert (out / "score_TT_posterior.png").exists() and "TT posterior" in (out / "table1.md").read_text()
+
+
+# --- the posterior method: batch's Bayes estimates from a posterior sample -----------------------
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(1, 6), st.integers(1, 12), st.integers(0, 2**31 - 1))
+def test_posterior_mixture_is_the_mean_of_the_sampled_mixtures(n_samples: int, n_kept: int, seed: int) -> None:
+    """Each distinct cluster's weight is the mean over samples of 1/n_s where it occurs (brute force
+    over frozensets of report indices); the weights sum to 1."""
+    rng = np.random.default_rng(seed)
+    n_reports = n_kept + int(rng.integers(0, 4))
+    kept = np.sort(rng.choice(n_reports, n_kept, replace=False))
+    samples = rng.integers(0, 4, (n_samples, n_kept)) * 7  # labels need not be 0..n−1
+    sets, weights = posterior_mixture(samples, kept, n_reports)
+    expected: dict[frozenset, float] = {}
+    for labels in samples:
+        clusters = {frozenset(kept[labels == c].tolist()) for c in np.unique(labels)}
+        for c in clusters:
+            expected[c] = expected.get(c, 0.0) + 1.0 / (len(clusters) * n_samples)
+    got = {frozenset(np.frombuffer(m, np.int32).tolist()): w for m, w in zip(sets, weights, strict=True)}
+    assert got.keys() == expected.keys() and len(sets) == len(got)
+    for c, w in expected.items():
+        assert got[c] == pytest.approx(w, rel=1e-12)
+    assert weights.sum() == pytest.approx(1.0)
+    assert all(np.all(np.diff(np.frombuffer(m, np.int32)) > 0) for m in sets)
+
+
+def test_fuse_sets_fuses_overlapping_sets_like_perfect_estimate(prior_path: str) -> None:
+    """Each set is fused as perfect_estimate fuses that set's reports alone."""
+    prior = TerrainPrior.read(prior_path)
+    reports = simulate(prior, 3, 40, 12, None, 0.5).reports
+    sets = [np.array(s, np.int32).tobytes() for s in ([0, 3, 5], [3], [1, 2, 3, 4, 11], [0, 3, 5, 7])]
+    fused = fuse_sets(prior, reports, sets)
+    for q, m in enumerate(sets):
+        idx = np.frombuffer(m, np.int32).astype(np.intp)
+        sub = reports.subset(idx)
+        one = perfect_estimate(prior, type(sub)(sub.means, sub.covs, sub.times, np.zeros(idx.size, np.int64)), terrain=False)
+        np.testing.assert_allclose(fused.means[q], one.means[0], rtol=1e-12)
+        np.testing.assert_allclose(fused.covs[q], one.covs[0], rtol=1e-10)
+
+
+def test_run_dataset_posterior_scores_the_posterior_mean_of_the_sampled_mixtures(prior_path: str) -> None:
+    """``methods=("posterior",)``: the Score is that of the mean over a direct sampler run's partitions
+    of their equally weighted mixtures (every sample's clusters scored as separate components, no
+    merging of equal clusters); N̂_D is that sample's posterior median; ln p and the point metrics are
+    the MAP partition's (the batch rows')."""
+    from tracker.association.batch import BatchAssociator, batch_estimate
+    from tracker.study.metrics import ScoreGram
+
+    config = _config(taus=(-1.0,), variants=("TT",), methods=("batch", "posterior"), poisson_mu=150.0,
+                     batch_anneal=4, batch_restarts=0, batch_nd_samples=8, batch_nd_burn_in=2)
+    records = pd.DataFrame(run_dataset(prior_path, 5, config))
+    assert set(records.algorithm) == {"TT batch", "TT posterior"} and len(records) == 4
+    prior = TerrainPrior.read(prior_path)
+    model = window_prior(prior, central_windows(prior, None, 0.5)[1])
+    sc = simulate(prior, 5, config.n_targets, config.n_reports, config.region_m, config.keep_fraction, config.sensor)
+    ref = perfect_estimate(prior, sc.reports)
+    for _, rec in records[records.method == "posterior"].iterrows():
+        s_model = PoissonS(150.0) if rec.s_model == "poisson" else ExpS(rec.tau)
+        g = associate(prior, sc.reports, "TT", s_model=s_model).assignments
+        kept = np.flatnonzero((g >= 0) & (integrate(model, sc.reports.means, sc.reports.covs) > 0))
+        sub = sc.reports.subset(kept)
+        mapped = BatchAssociator(model, "TT", s_model=s_model, anneal=4, restarts=0).fit(
+            sub, init=np.unique(g[kept], return_inverse=True)[1])
+        res = BatchAssociator(model, "TT", s_model=s_model, mode="sample", burn_in=2, samples=8, split_merge=1,
+                              seed=5, keep_samples=True).fit(sub, init=mapped.labels)
+        assert res.samples.shape == (8, kept.size)
+        means, covs, weights = [], [], []
+        for labels in res.samples:
+            est = batch_estimate(prior, sub, np.unique(labels, return_inverse=True)[1], "UU")
+            means.append(est.means)
+            covs.append(est.covs)
+            weights.append(np.full(len(est.means), 1.0 / (len(est.means) * len(res.samples))))
+        means, covs = np.concatenate([*means, ref.means]), np.concatenate([*covs, ref.covs])
+        w = np.concatenate([*weights, np.full(len(ref.means), -1.0 / len(ref.means))])
+        gram = ScoreGram(prior, means, covs, np.ones(len(means), bool))
+        assert rec.score == pytest.approx(gram.score(w)[0], rel=1e-6)
+        assert rec.nd_hat == posterior_median(res.nd_values, res.nd_prob)
+        twin = records[(records.method == "batch") & (records.s_model == rec.s_model)].iloc[0]
+        for col in ("log_posterior", "greedy_log_posterior", "gospa_m", "purity"):
+            assert rec[col] == twin[col]
+        assert rec.score != twin.score
+
+
+def test_posterior_method_needs_samples() -> None:
+    with pytest.raises(ValueError, match="batch_nd_samples >= 1"):
+        ExperimentConfig(methods=("greedy", "posterior"), batch_nd_samples=0)
