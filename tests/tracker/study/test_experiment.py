@@ -336,36 +336,23 @@ def test_cli_experiment_with_methods(prior_path: str, tmp_path, capsys) -> None:
 
     out = tmp_path / "cli"
     argv = ["experiment", "--prior", prior_path, "--datasets", "2", "--reports", "15", "--tau", "-2,0",
-            "--targets", "60", "--variants", "UU,TT", "--methods", "greedy,batch", "--workers", "1", "--quiet",
+            "--targets", "60", "--variants", "UU,TT", "--methods", "greedy,batch,posterior", "--workers", "1", "--quiet",
             "--out", str(out)]
     assert main(argv) == 0
+    algorithms = {"UU", "TT", "UU batch", "TT batch", "UU posterior", "TT posterior"}
     results = pd.read_parquet(out / "results.parquet")
-    assert set(results.algorithm) == {"UU", "TT", "UU batch", "TT batch"}
+    assert set(results.algorithm) == algorithms
     summary = json.loads((out / "summary.json").read_text())
-    assert set(summary["table_normal"]) == {"UU", "TT", "UU batch", "TT batch"}
-    assert set(summary["batch_vs_greedy"]) == {"UU", "TT"}
+    assert set(summary["table_normal"]) == algorithms
+    assert set(summary["batch_vs_greedy"]) == set(summary["posterior_vs_greedy"]) == {"UU", "TT"}
     gain = summary["batch_vs_greedy"]["TT"]["min_log_posterior_gain"]
     assert gain >= -1e-9 and 0.0 <= summary["batch_vs_greedy"]["TT"]["prob_better_score_best_tau"] <= 1.0
-    assert (out / "score_TT_batch.png").exists() and "TT batch" in (out / "table1.md").read_text()
-    assert "TT batch vs greedy" in capsys.readouterr().out
+    for name in ("TT batch", "TT posterior"):
+        assert (out / f"score_{name.replace(' ', '_')}.png").exists() and name in (out / "table1.md").read_text()
+    printed = capsys.readouterr().out
+    assert "TT batch vs greedy" in printed and "TT posterior vs greedy" in printed
     assert main(["experiment", "--prior", prior_path, "--methods", "greedy,mcmc", "--out", str(out)]) == 1
     assert "mcmc" in capsys.readouterr().err
-
-
-def test_cli_experiment_with_the_posterior_method(prior_path: str, tmp_path, capsys) -> None:
-    from tracker.cli import main
-
-    out = tmp_path / "cli"
-    argv = ["experiment", "--prior", prior_path, "--datasets", "2", "--reports", "15", "--tau", "-2,0",
-            "--targets", "60", "--variants", "TT", "--methods", "greedy,posterior", "--workers", "1", "--quiet",
-            "--out", str(out)]
-    assert main(argv) == 0
-    assert "TT posterior vs greedy: P(better score)" in capsys.readouterr().out
-    results = pd.read_parquet(out / "results.parquet")
-    assert set(results.algorithm) == {"TT", "TT posterior"}
-    summary = json.loads((out / "summary.json").read_text())
-    assert set(summary["posterior_vs_greedy"]) == {"TT"} and summary["batch_vs_greedy"] == {}
-    assert (out / "score_TT_posterior.png").exists() and "TT posterior" in (out / "table1.md").read_text()
 
 
 # --- the posterior method: batch's Bayes estimates from a posterior sample -----------------------
