@@ -226,18 +226,38 @@ def read_vector(spec: LayerSpec, grid: Grid, columns: list[str] | None = None) -
 
 
 RASTER_MARGIN = 3
-"""Source pixels read beyond the grid's footprint on each side (bilinear resampling reads 2 x 2)."""
+"""Source pixels read beyond the grid's footprint on each side when the warp does not downsample
+(bilinear resampling reads 2 x 2); :func:`covering_window` widens it where it does."""
 
 
 def covering_window(src: rasterio.io.DatasetReader, grid: Grid) -> Window | None:
-    """The window of ``src`` that covers ``grid`` plus RASTER_MARGIN pixels, clipped to it; None off the raster."""
+    """The window of ``src`` that covers ``grid`` plus the resampling kernel's reach, clipped to it;
+    None off the raster. The reach is RASTER_MARGIN pixels, or more when GDAL downsamples: its bilinear
+    kernel then spans one grid cell either side of a cell centre, half a cell past the grid's edge,
+    i.e. 0.5 / scale source pixels (:func:`warp_scale`)."""
     bounds = grid.bounds if src.crs == grid.crs else transform_bounds(grid.crs, src.crs, *grid.bounds, densify_pts=21)
     win = src.window(*bounds)
-    c0 = max(0, math.floor(win.col_off) - RASTER_MARGIN)
-    r0 = max(0, math.floor(win.row_off) - RASTER_MARGIN)
-    c1 = min(src.width, math.ceil(win.col_off + win.width) + RASTER_MARGIN)
-    r1 = min(src.height, math.ceil(win.row_off + win.height) + RASTER_MARGIN)
+    xscale, yscale = warp_scale(src, grid)
+    mx, my = (max(RASTER_MARGIN, math.ceil(0.5 / s) + 2) for s in (xscale, yscale))
+    c0 = max(0, math.floor(win.col_off) - mx)
+    r0 = max(0, math.floor(win.row_off) - my)
+    c1 = min(src.width, math.ceil(win.col_off + win.width) + mx)
+    r1 = min(src.height, math.ceil(win.row_off + win.height) + my)
     return None if c1 <= c0 or r1 <= r0 else Window(c0, r0, c1 - c0, r1 - r0)
+
+
+def warp_scale(src: rasterio.io.DatasetReader, grid: Grid) -> tuple[float, float]:
+    """GDAL's XSCALE, YSCALE warp options: grid cells per source pixel along x and y (below one when
+    the warp downsamples). Left to itself GDAL computes them per warp chunk from that chunk's source
+    extent, so a window of the raster (a tile's, or the part under a grid) would resample with a wider
+    or narrower kernel than the whole raster. In the grid's CRS they are the ratio of pixel sizes, the
+    same for any window; across CRSs they are measured at the centre of ``src``."""
+    t = src.transform
+    if src.crs == grid.crs:
+        return math.hypot(t.a, t.d) / grid.dx, math.hypot(t.b, t.e) / grid.dy
+    cx, cy = t * (src.width / 2, src.height / 2)
+    xs, ys = transformer(src.crs, grid.crs).transform(np.array([cx, cx + t.a, cx + t.b]), np.array([cy, cy + t.d, cy + t.e]))
+    return math.hypot(xs[1] - xs[0], ys[1] - ys[0]) / grid.dx, math.hypot(xs[2] - xs[0], ys[2] - ys[0]) / grid.dy
 
 
 def _all_nodata(values: np.ndarray, nodata: float) -> bool:
@@ -268,6 +288,7 @@ def read_raster(spec: LayerSpec, grid: Grid, categorical: bool = False, warn_emp
             data = src.read(spec.band, window=window)
             src_nodata = src.nodata
             src_transform, src_crs = (src.transform if window is None else src.window_transform(window)), src.crs
+            xscale, yscale = warp_scale(src, grid)
     except rasterio.errors.RasterioIOError as exc:
         raise LayerError(f"{_where(spec)}: not a readable raster: {exc}") from None
     if categorical:
@@ -296,7 +317,7 @@ def read_raster(spec: LayerSpec, grid: Grid, categorical: bool = False, warn_emp
         src_data, out, src_transform=src_transform, src_crs=src_crs,
         dst_transform=grid.transform, dst_crs=grid.crs, resampling=method,
         num_threads=os.cpu_count() or 1,  # GDAL warps chunks independently: the same numbers on any count
-        **masks,
+        XSCALE=repr(xscale), YSCALE=repr(yscale), **masks,
     )
     if warn_empty and _all_nodata(out, nodata):
         warnings.warn(f"{_where(spec)}: no data on the grid {grid.bounds} ({grid.crs.to_string()})",

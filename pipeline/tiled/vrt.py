@@ -31,7 +31,8 @@ def _element(parent: ET.Element, tag: str, text: str | None = None, **attrib: st
 
 
 def windowed_raster_layer(spec: LayerSpec, grid: Grid, folder: Path) -> LayerSpec:
-    """A VRT in ``folder`` of the part of a raster layer that covers ``grid`` (plus :data:`pipeline.gis.layers.RASTER_MARGIN`), so
+    """A VRT in ``folder`` of the part of a raster layer that covers ``grid`` (plus the resampling
+    kernel's reach, :func:`pipeline.gis.layers.covering_window`), so
     :func:`pipeline.gis.layers.read_raster` reads that part only, with its own transform and no data."""
 
     try:

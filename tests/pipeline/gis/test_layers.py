@@ -7,11 +7,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import rasterio
 import shapely
 from affine import Affine
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from pyproj import Transformer
+from pyproj import Proj, Transformer
 
 from pipeline.gis.grid import NODATA_CODE, Grid
 from pipeline.gis.layers import (
@@ -21,6 +22,7 @@ from pipeline.gis.layers import (
     read_dem,
     read_raster,
     read_vector,
+    warp_scale,
 )
 from tests.pipeline.gis_helpers import tree_hashes, write_raster, write_vector
 
@@ -261,11 +263,61 @@ def test_raster_read_is_gdals_masked_warp(tmp_path: Path, seed, src_res, holes, 
     fill, dtype = (NODATA_CODE, np.int32) if categorical else (np.nan, np.float32)
     src = np.where(values == nodata, fill, values).astype(dtype)
     expected = np.full(GRID.shape, fill, dtype=dtype)
+    with rasterio.open(path) as raster:  # the whole raster, at the kernel width warp_scale fixes
+        xscale, yscale = warp_scale(raster, GRID)
     reproject(src, expected, src_transform=Affine(src_res, 0, x0, 0, -src_res, y1), src_crs=crs, src_nodata=fill,
               dst_transform=GRID.transform, dst_crs=GRID.crs, dst_nodata=fill,
-              resampling=Resampling.nearest if categorical else Resampling.bilinear)
+              resampling=Resampling.nearest if categorical else Resampling.bilinear, XSCALE=repr(xscale), YSCALE=repr(yscale))
     np.testing.assert_array_equal(got, expected)
     assert (got != fill).any() if categorical else np.isfinite(got).any()
+
+
+@pytest.mark.parametrize("crs", ["EPSG:32734", "EPSG:32733", "EPSG:4326"])
+@pytest.mark.parametrize("src_res", [30.0, 250.0])
+def test_warp_scale_is_grid_cells_per_source_pixel(tmp_path: Path, crs, src_res) -> None:
+    """The same CRS: the ratio of pixel sizes. Another UTM zone: a pixel's ground length is res / k_src,
+    which measures res k_grid / k_src on the grid (pyproj's point scale factors). Degrees: a pixel of
+    1/3600 degree is R dlat along a meridian (the meridional radius) and N cos(lat) dlon along a parallel."""
+    lon, lat = 21.3, -34.0
+    if crs == "EPSG:4326":
+        deg = src_res / 30.0 / 3600.0
+        t = Affine(deg, 0, lon - 10 * deg, 0, -deg, lat + 10 * deg)
+    else:
+        x, y = Transformer.from_crs("EPSG:4326", crs, always_xy=True).transform(lon, lat)  # the raster's centre
+        t = Affine(src_res, 0, x - 10 * src_res, 0, -src_res, y + 10 * src_res)
+    path = write_raster(tmp_path / "r.tif", np.zeros((20, 20), np.float32), t, crs)
+    with rasterio.open(path) as src:
+        xscale, yscale = warp_scale(src, GRID)
+    k_grid = Proj("EPSG:32734").get_factors(lon, lat).meridional_scale
+    if crs == "EPSG:4326":
+        a, f = 6_378_137.0, 1 / 298.257223563
+        e2 = f * (2 - f)
+        s2 = np.sin(np.radians(lat)) ** 2
+        n_radius, m_radius = a / np.sqrt(1 - e2 * s2), a * (1 - e2) / (1 - e2 * s2) ** 1.5
+        expected = (k_grid * n_radius * np.cos(np.radians(lat)) * np.radians(deg) / 100.0, k_grid * m_radius * np.radians(deg) / 100.0)
+    else:
+        k_src = Proj(crs).get_factors(lon, lat).meridional_scale
+        expected = (src_res * k_grid / k_src / 100.0,) * 2
+    np.testing.assert_allclose((xscale, yscale), expected, rtol=1e-5)
+
+
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(seed=st.integers(0, 2**31), src_res=st.sampled_from([5.0, 10.0, 20.0, 30.0, 45.0, 90.0, 150.0]), holes=st.booleans())
+def test_a_window_of_the_grid_reads_what_the_whole_grid_reads(tmp_path: Path, seed, src_res, holes) -> None:
+    """A tile's read is the whole grid's, cropped, bit for bit, when GDAL downsamples too: the kernel
+    width is the raster's (warp_scale), not one GDAL derives from the part of the raster under the tile."""
+    rng = np.random.default_rng(seed)
+    h, w = (rng.integers(2_000, 12_000, 2) / src_res).astype(int) + 4
+    x0, y1 = rng.uniform(495_000.0, 500_000.0), rng.uniform(6_236_000.0, 6_240_000.0)
+    values = rng.normal(300.0, 40.0, (h, w)).astype(np.float32)
+    if holes:
+        values[rng.random((h, w)) < 0.1] = -9999.0
+    path = write_raster(tmp_path / f"r{seed}.tif", values, Affine(src_res, 0, x0, 0, -src_res, y1), "EPSG:32734", -9999.0)
+    r0, c0 = rng.integers(0, 60), rng.integers(0, 80)
+    hh, ww = rng.integers(5, 80 - r0 + 1), rng.integers(5, 100 - c0 + 1)
+    whole = read_raster(spec(path, kind="raster"), GRID, warn_empty=False)
+    tile = read_raster(spec(path, kind="raster"), GRID.window_grid(r0, c0, hh, ww), warn_empty=False)
+    np.testing.assert_array_equal(tile, whole[r0 : r0 + hh, c0 : c0 + ww])
 
 
 def test_all_nodata_dem_is_an_error(tmp_path: Path) -> None:
