@@ -17,6 +17,7 @@
     defensive = "cv"            # p = (1-ε)·p_model + ε·uniform: ε by cross-fitted ML ("cv"), a number, or "none"
     temper = "cv"               # p ∝ r^τ before the mixture: τ by the same cross-fitted ML, a number, or "none" (default)
     weights = "count"           # a column of the targets giving each point's weight (--weights overrides)
+    clamp = true                # continuous forms held at their end value beyond the training points' range
 
     [learn.forms.road_distance]     # a feature's form (overrides its [likelihood] table's)
     form = "decreasing"             # categorical | road | bins | linear | increasing | decreasing | spline
@@ -41,6 +42,7 @@ from pipeline.prior.likelihood import read_toml
 _KEYS = {
     "features", "on_zero", "soften", "penalty_sd", "smooth_sd", "bin_width", "flexible",
     "folds", "block_size_m", "bandwidths_m", "hybrid", "forms", "defensive", "temper", "weights",
+    "clamp",
 }
 FORMS = ("categorical", "road", "bins", "linear", "increasing", "decreasing", "spline")
 _FORM_KEYS = {"form", "scale", "knots", "smoothing", "bins", "edges"}
@@ -107,6 +109,7 @@ class LearnConfig:
     defensive: float | str | None = "cv"
     temper: float | str | None = None
     weights: str | None = None
+    clamp: bool = True
 
 
 def _positive(source: Path, key: str, v: object, allow_zero: bool = False) -> float:
@@ -203,6 +206,10 @@ def parse_learn(d: dict, source: Path) -> LearnConfig:
         if not (isinstance(d["weights"], str) and d["weights"]):
             raise ConfigError(f"{source}: learn.weights: expected a column name of the targets, got {d['weights']!r}")
         kw["weights"] = d["weights"]
+    if "clamp" in d:
+        if not isinstance(d["clamp"], bool):
+            raise ConfigError(f"{source}: learn.clamp: must be true or false, got {d['clamp']!r}")
+        kw["clamp"] = d["clamp"]
     return LearnConfig(**kw)
 
 

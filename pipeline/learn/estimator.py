@@ -36,7 +36,7 @@ from threadpoolctl import threadpool_limits
 from pipeline.build.region import calibrate
 from pipeline.config.learn import FormSpec
 from pipeline.features.stack import Feature, FeatureStack
-from pipeline.learn.forms import BASIS_FORMS, basis, difference_penalty, from_scale, to_scale
+from pipeline.learn.forms import BASIS_FORMS, difference_penalty, from_scale, to_scale
 from pipeline.learn.kde import block_folds, log_kde_feature
 from pipeline.learn.poisson import FitResult, Objective, TermParams, fit, kde_logr, term_params
 from pipeline.learn.sufficient import (
@@ -236,6 +236,7 @@ class PriorEstimator(BaseEstimator):
         forms: dict | None = None,
         defensive: float | str | None = None,
         temper: float | str | None = None,
+        clamp: bool = True,
     ) -> None:
         self.features = features
         self.template = template
@@ -255,6 +256,7 @@ class PriorEstimator(BaseEstimator):
         self.forms = forms
         self.defensive = defensive
         self.temper = temper
+        self.clamp = clamp
 
     def __sklearn_clone__(self) -> PriorEstimator:
         """A clone sharing the feature stack: it is the data the points live on, not a setting, and
@@ -359,6 +361,8 @@ class PriorEstimator(BaseEstimator):
         ]
         keep, counts = _usable(pstats, params, soften is not None)
         used = pstats.subset(keep)
+        if self.clamp:
+            params = [_clamped(p, used.value[:, k]) for k, p in enumerate(params)]
         if "cv" in (self.defensive, self.temper) and groups is None:
             raise ValueError("defensive='cv' / temper='cv' need the points' block folds; fit_stats takes numbers or None")
         params, self.smoothing_aic_, results = self._choose_smoothing(cells, used, params)
@@ -543,7 +547,7 @@ class PriorEstimator(BaseEstimator):
                     vals = lr
                 else:
                     at = from_scale(t.scale, t.kappa if t.form != "spline" else np.linspace(t.kappa[0], t.kappa[-1], 6))
-                    b = basis(t.form, to_scale(t.scale, at), t.kappa)
+                    b = t.basis(at)
                     keys, lr, se_lr = [f"r({v:.4g})" for v in at], b @ th, np.sqrt(np.clip(np.einsum("ij,jk,ik->i", b, cov, b), 0.0, None))
                     vals = np.exp(lr)
                 lo, hi = (lr - Z95 * se_lr, lr + Z95 * se_lr) if t.form == "linear" else (np.exp(lr - Z95 * se_lr), np.exp(lr + Z95 * se_lr))
@@ -701,10 +705,21 @@ def _usable(pstats: PointStats, params, softened: bool) -> tuple[np.ndarray, dic
 def _curve(t: Term, theta: np.ndarray, cov: np.ndarray, n: int = 200) -> dict[str, list[float]]:
     """A basis term's log r on ``n`` values equally spaced on its scale, with its standard error
     (nats; parameters at a bound count as fixed there)."""
-    g = np.linspace(t.kappa[0], t.kappa[-1], n)
-    b = basis(t.form, g, t.kappa)
-    return {"value": from_scale(t.scale, g).tolist(), "logr": (b @ theta).tolist(),
+    value = from_scale(t.scale, np.linspace(t.kappa[0], t.kappa[-1], n))
+    b = t.basis(value)
+    return {"value": value.tolist(), "logr": (b @ theta).tolist(),
             "se": np.sqrt(np.clip(np.einsum("ij,jk,ik->i", b, cov, b), 0.0, None)).tolist()}
+
+
+def _clamped(p: TermParams, values: np.ndarray) -> TermParams:
+    """A basis term's parameters with its basis clamped to the range of the points' ``values``
+    (feature units; NaN ignored): beyond the training points the fitted curve stays at its end value,
+    where the data say nothing of it. Other terms are returned as they are."""
+    t = p.term
+    g = to_scale(t.scale, values[np.isfinite(values)]) if t.form in BASIS_FORMS else np.zeros(0)
+    if g.size == 0:
+        return p
+    return dataclasses.replace(p, term=dataclasses.replace(t, clamp_lo=float(g.min()), clamp_hi=float(g.max())))
 
 
 def _with_lambda(p: TermParams, lam: float) -> TermParams:

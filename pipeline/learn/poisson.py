@@ -21,7 +21,7 @@ import numpy as np
 from scipy import optimize
 from threadpoolctl import threadpool_limits
 
-from pipeline.learn.forms import BASIS_FORMS, basis, difference_penalty, to_scale
+from pipeline.learn.forms import BASIS_FORMS, difference_penalty
 from pipeline.learn.kde import KDE_EPS
 from pipeline.learn.sufficient import DISCRETE_FORMS, CellStats, PointStats, Term
 from pipeline.prior.likelihood import road_likelihood
@@ -55,8 +55,7 @@ class TermParams:
         hit = self._basis.get(id(value))
         if hit is not None and hit[0] is value:
             return hit[1]
-        t = self.term
-        b = basis(t.form, to_scale(t.scale, value), t.kappa)
+        b = self.term.basis(value)
         self._basis[id(value)] = (value, b)
         return b
 

@@ -25,6 +25,7 @@ from pipeline.gis.layers import LayerSpec, read_vector
 from pipeline.gis.targets import read_targets
 from pipeline.learn.estimator import SPATIAL, PriorEstimator
 from pipeline.learn.evaluate import CVResult, block_cv, default_bandwidths
+from pipeline.learn.forms import from_scale
 from pipeline.learn.kde import block_ids, fit_kde_cv
 from pipeline.learn.plots import plot_fit
 from pipeline.learn.sufficient import DISCRETE_FORMS, check_weights
@@ -79,6 +80,9 @@ class LearnReport:
             lines.append(f"defensive mixture: p = (1 - eps) p_model + eps uniform, eps = {est.defensive_:.4g} ({how})")
         if est.temper is not None:
             lines.append(f"tempered: p_model proportional to r^tau, tau = {est.temper_:.4g}")
+        clamped = [t.feature for t in est.terms_ if np.isfinite(t.clamp_hi)]
+        if clamped:
+            lines.append(f"clamped to the training points' range: {', '.join(clamped)}")
         if self.hybrid is not None:
             p = self.hybrid.likelihoods_[SPATIAL]
             lines.append(f"hybrid: terrain x (alpha + (1 - alpha) KDE/uniform)^gamma, gamma = {p['gamma']:.3f} "
@@ -133,6 +137,8 @@ def diagnostics(report: LearnReport) -> dict:
             "iterations": [r.n_iter for r in e.fit_results_], "at_bound": [r.at_bound for r in e.fit_results_],
             "seconds": e.fit_seconds_, "pass_seconds": e.pass_seconds_,
             "defensive_epsilon": e.defensive_, "curves": e.curves_, "spline_aic_per_lambda": e.smoothing_aic_,
+            "clamped_range": {t.feature: from_scale(t.scale, np.array([t.clamp_lo, t.clamp_hi])).tolist()
+                              for t in e.terms_ if np.isfinite(t.clamp_hi)},
         }
 
     out = {
@@ -222,6 +228,7 @@ def prepare_learning(
         template=config.model, feature_names=tuple(names), penalty_sd=lc.penalty_sd, smooth_sd=lc.smooth_sd,
         on_zero=lc.on_zero, soften=lc.soften, flexible=lc.flexible or None, bin_width=lc.bin_width,
         forms=dict(lc.forms) or None, defensive=lc.defensive, temper=lc.temper, spatial_block=lc.block_size_m, spatial_folds=lc.folds,
+        clamp=lc.clamp,
     )
     return config, lc, pts, est
 

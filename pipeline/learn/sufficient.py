@@ -19,7 +19,7 @@ import numpy as np
 
 from pipeline.features.stack import FeatureStack
 from pipeline.gis.grid import NODATA_CODE
-from pipeline.learn.forms import BASIS_FORMS, from_scale, knots, to_scale
+from pipeline.learn.forms import BASIS_FORMS, basis, from_scale, knots, to_scale
 
 TermForm = Literal["categorical", "binned", "road", "kde", "linear", "increasing", "decreasing", "spline"]
 DISCRETE_FORMS = ("categorical", "binned")
@@ -43,7 +43,9 @@ class Term:
     ``bin_width`` (feature units) is the fine bin of continuous forms; ``lo`` their lowest value.
     Basis forms (:mod:`pipeline.learn.forms`: linear, increasing, decreasing, spline) bin on their
     ``scale`` g(v) (``lo`` and ``bin_width`` in units of g), with ``n_knots`` knot intervals and,
-    for the spline, the difference-penalty weight ``lam``.
+    for the spline, the difference-penalty weight ``lam``; ``clamp_lo`` .. ``clamp_hi`` (units of g)
+    is the range the basis is evaluated in (values beyond it take the value at its end: Maxent's
+    clamping, set by the fit to the training points' range).
     """
 
     feature: str
@@ -60,11 +62,18 @@ class Term:
     scale: str = "linear"
     n_knots: int = 8
     lam: float = 0.0
+    clamp_lo: float = -np.inf
+    clamp_hi: float = np.inf
 
     @property
     def kappa(self) -> np.ndarray:
         """Basis forms: the knots on the scale g over the fine bins' range."""
         return knots(self.lo, self.lo + self.n_fine * self.bin_width, self.n_knots)
+
+    def basis(self, values: np.ndarray) -> np.ndarray:
+        """Basis forms: B (n, K) at raw feature values ``values`` (n,), their scale g clamped to
+        [``clamp_lo``, ``clamp_hi``]; rows of NaN values are 0."""
+        return basis(self.form, np.clip(to_scale(self.scale, values), self.clamp_lo, self.clamp_hi), self.kappa)
 
     @property
     def n_levels(self) -> int:

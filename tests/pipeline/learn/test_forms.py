@@ -212,3 +212,32 @@ def test_form_spec_names_bad_keys() -> None:
                     ({"form": "spline", "smoothing": -1.0}, "smoothing")]:
         with pytest.raises(ValueError, match=f"^{key}:"):
             FormSpec(**kw)
+
+
+def test_clamping_holds_the_curve_at_its_end_beyond_the_training_points(world) -> None:
+    """Points only within 150 m of a road: the fitted road term is clamped to their range (on the
+    scale), so every dry cell beyond it gets the same density, as Maxent clamps; without clamping the
+    decreasing curve keeps falling there."""
+    stack, prior = world
+    pts = prior.sample(6000, np.random.default_rng(8))
+    d = np.asarray(stack.sample(pts[:, 0], pts[:, 1])["road_distance"], dtype=float)
+    near = pts[d <= 150.0]
+    forms = {"road_distance": {"form": "decreasing", "scale": "log1p", "knots": 4}}
+    names = ("water", "road_distance")
+    clamped = fit(stack, near, forms, names)
+    free = fit(stack, near, forms, names, clamp=False)
+    term = next(t for t in clamped.terms_ if t.feature == "road_distance")
+    assert term.clamp_lo == pytest.approx(np.log1p(d[d <= 150.0].min()))
+    assert term.clamp_hi == pytest.approx(np.log1p(d[d <= 150.0].max()))
+    assert next(t for t in free.terms_ if t.feature == "road_distance").clamp_hi == np.inf
+    dist = stack["road_distance"].values
+    dry = stack["water"].values == 0
+    g = np.log1p(dist)
+    far = dry & (g > term.clamp_hi + 2 * term.bin_width)
+    assert far.sum() > 100
+    beyond = clamped.prior_.density[far]
+    np.testing.assert_allclose(beyond, beyond[0], rtol=1e-6)
+    assert np.ptp(free.prior_.density[far]) > 0.1 * free.prior_.density[far].max()
+    curve = clamped.curves_["road_distance"]
+    v, lr = np.asarray(curve["value"]), np.asarray(curve["logr"])
+    assert np.ptp(lr[np.log1p(v) >= term.clamp_hi]) == pytest.approx(0.0, abs=1e-12)

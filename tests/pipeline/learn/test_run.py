@@ -43,12 +43,15 @@ def test_learn_with_forms_weights_and_defensive_mixture(weighted_targets, tmp_pa
     assert main(["-q", "learn", str(cfg), "--targets", str(csv), "--weights", "w", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "eps = 0.05 (fixed)" in printed and "fold 1" in printed and "fold 2" in printed and "worst" in printed
+    assert "clamped to the training points' range: road_distance, elevation" in printed
     model = LikelihoodModel.read_toml(out)
     assert isinstance(model.terms["road_distance"], BinnedLikelihood) and "elevation" in model.terms
     diag = json.loads(out.with_suffix(".diagnostics.json").read_text())
     assert diag["ml"]["likelihoods"]["elevation"] and model.meta["learned"]["defensive_epsilon"] == 0.05
     assert model.meta["learned"]["weighted"] is True
     assert len(diag["cv"]["gain_nats"]["terrain"]["per_fold"]) == 2
+    lo, hi = diag["ml"]["clamped_range"]["road_distance"]
+    assert 0 <= lo < hi and set(diag["ml"]["clamped_range"]) == {"road_distance", "elevation"}
 
 
 def test_bad_weights_are_named_errors(weighted_targets, tmp_path, capsys) -> None:
@@ -98,6 +101,12 @@ def test_form_config_errors_name_file_and_key(tmp_path) -> None:
     for bad in ("maybe", 1.5, True):
         with pytest.raises(ConfigError, match="learn.defensive"):
             load_learn_config(cut_config(tmp_path, {"defensive": bad}))
+    for bad in ("yes", 1):
+        with pytest.raises(ConfigError, match="learn.clamp: must be true or false") as info:
+            load_learn_config(cut_config(tmp_path, {"clamp": bad}))
+        assert str(tmp_path) in str(info.value)
+    assert load_learn_config(cut_config(tmp_path, {"clamp": False}))[1].clamp is False
+    assert load_learn_config(cut_config(tmp_path, {}))[1].clamp is True
 
 
 def test_ties_are_counted_as_ties() -> None:
