@@ -142,11 +142,17 @@ def cmd_learn(args: argparse.Namespace) -> None:
     tiled = args.tiled or args.scheduler
     if tiled and args.hybrid_prior is not None:
         raise ValueError("--hybrid-prior needs the whole grid (the KDE term); it cannot be used with --tiled / --scheduler")
-    config, _ = load_learn_config(args.region)
+    if tiled and args.mixture_prior is not None:
+        raise ValueError("--mixture-prior needs the whole grid (cross-fitted weights); it cannot be used with --tiled / --scheduler")
+    config, lc = load_learn_config(args.region)
+    if tiled and lc.mixture:
+        raise ValueError(f"{args.region}: [learn.mixture] needs the whole grid (cross-fitted weights); it cannot be used with --tiled / --scheduler")
     inputs = config_inputs(config) | file_inputs(targets=args.targets)
-    outputs = [Output("--out", args.out), Output("--hybrid-prior", args.hybrid_prior) if args.hybrid_prior else None]
+    outputs = [Output("--out", args.out), Output("--hybrid-prior", args.hybrid_prior) if args.hybrid_prior else None,
+               Output("--mixture-prior", args.mixture_prior) if args.mixture_prior else None]
     with command_outputs(outputs, inputs) as out:
         hybrid = out.path("--hybrid-prior") if args.hybrid_prior else None
+        mixture = out.path("--mixture-prior") if args.mixture_prior else None
         if tiled and args.weights:
             raise ValueError("--weights: tiled learning (--tiled / --scheduler) is unweighted")
         if tiled:
@@ -161,7 +167,7 @@ def cmd_learn(args: argparse.Namespace) -> None:
 
             report = learn_region(args.region, args.targets, out.path("--out"), args.layer, args.x, args.y,
                                   args.targets_crs, cv=not args.no_cv, hybrid_prior=hybrid, progress=not args.quiet,
-                                  weights=args.weights)
+                                  weights=args.weights, mixture_prior=mixture)
         written = [out.final(p) for p in report.paths.values()]
     report.paths = dict(zip(report.paths, written, strict=True))
     print(report.table())
@@ -181,6 +187,7 @@ def add_learn_parser(sub, quiet: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, required=True, help="fitted likelihood tables (TOML); diagnostics and plot beside it")
     p.add_argument("--no-cv", action="store_true", help="skip the spatial block cross-validation")
     p.add_argument("--hybrid-prior", type=Path, help="also write the hybrid (terrain + KDE) prior GeoTIFF here")
+    p.add_argument("--mixture-prior", type=Path, help="also write the mixture prior of [learn.mixture] (GeoTIFF) here")
     p.add_argument("--tiled", action="store_true",
                    help="compute the fit's statistics tile by tile on Dask (grids larger than memory); implies --no-cv, no hybrid")
     p.add_argument("--scheduler", metavar="ADDRESS", help="Dask scheduler for --tiled, e.g. tcp://10.0.0.5:8786 (implies --tiled)")

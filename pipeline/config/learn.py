@@ -19,6 +19,11 @@
     weights = "count"           # a column of the targets giving each point's weight (--weights overrides)
     clamp = true                # continuous forms held at their end value beyond the training points' range
 
+    [learn.mixture.towns]           # optional: a mixture of priors, one per table (at least 2), its
+    features = ["water", "road_distance", "residential_distance"]   # weights chosen on cross-fitted blocks
+    [learn.mixture.farmland]
+    features = ["water", "road_distance", "waterbody_distance"]
+
     [learn.forms.road_distance]     # a feature's form (overrides its [likelihood] table's)
     form = "decreasing"             # categorical | road | bins | linear | increasing | decreasing | spline
     scale = "log1p"                 # g(v) the form is in: "linear" (v) or "log1p" (log(1 + v))
@@ -42,7 +47,7 @@ from pipeline.prior.likelihood import read_toml
 _KEYS = {
     "features", "on_zero", "soften", "penalty_sd", "smooth_sd", "bin_width", "flexible",
     "folds", "block_size_m", "bandwidths_m", "hybrid", "forms", "defensive", "temper", "weights",
-    "clamp",
+    "clamp", "mixture",
 }
 FORMS = ("categorical", "road", "bins", "linear", "increasing", "decreasing", "spline")
 _FORM_KEYS = {"form", "scale", "knots", "smoothing", "bins", "edges"}
@@ -110,6 +115,8 @@ class LearnConfig:
     temper: float | str | None = None
     weights: str | None = None
     clamp: bool = True
+    mixture: dict[str, tuple[str, ...]] = field(default_factory=dict)
+    """Components of a mixture prior (name -> its features); empty: no mixture."""
 
 
 def _positive(source: Path, key: str, v: object, allow_zero: bool = False) -> float:
@@ -210,7 +217,24 @@ def parse_learn(d: dict, source: Path) -> LearnConfig:
         if not isinstance(d["clamp"], bool):
             raise ConfigError(f"{source}: learn.clamp: must be true or false, got {d['clamp']!r}")
         kw["clamp"] = d["clamp"]
+    if "mixture" in d:
+        kw["mixture"] = _mixture(d["mixture"], source)
     return LearnConfig(**kw)
+
+
+def _mixture(m: object, source: Path) -> dict[str, tuple[str, ...]]:
+    """``[learn.mixture.<name>] features = [...]`` tables: at least two components."""
+    if not isinstance(m, dict) or len(m) < 2:
+        raise ConfigError(f"{source}: learn.mixture: expected at least 2 tables [learn.mixture.<name>] features = [...], got {m!r}")
+    out = {}
+    for name, spec in m.items():
+        if not isinstance(spec, dict) or set(spec) != {"features"}:
+            raise ConfigError(f"{source}: learn.mixture.{name}: expected a table with only features = [...], got {spec!r}")
+        f = spec["features"]
+        if not (isinstance(f, list) and f and all(isinstance(v, str) for v in f)):
+            raise ConfigError(f"{source}: learn.mixture.{name}.features: expected a list of feature names, got {f!r}")
+        out[name] = tuple(f)
+    return out
 
 
 def load_learn_config(path: str | Path) -> tuple[RegionConfig, LearnConfig]:
@@ -223,6 +247,10 @@ def load_learn_config(path: str | Path) -> tuple[RegionConfig, LearnConfig]:
         missing = [f for f in learn.features if f not in region.features]
         if missing:
             raise ConfigError(f"{path}: learn.features: no feature {missing[0]!r}; features are {sorted(region.features)}")
+    for name, features in learn.mixture.items():
+        missing = [f for f in features if f not in region.features]
+        if missing:
+            raise ConfigError(f"{path}: learn.mixture.{name}.features: no feature {missing[0]!r}; features are {sorted(region.features)}")
     for key, names in (("flexible", learn.flexible), ("forms", learn.forms)):
         for name in names:
             if name not in region.features:

@@ -27,6 +27,7 @@ from pipeline.learn.estimator import SPATIAL, PriorEstimator
 from pipeline.learn.evaluate import CVResult, block_cv, default_bandwidths
 from pipeline.learn.forms import from_scale
 from pipeline.learn.kde import block_ids, fit_kde_cv
+from pipeline.learn.mixture import MixturePrior
 from pipeline.learn.plots import plot_fit
 from pipeline.learn.sufficient import DISCRETE_FORMS, check_weights
 
@@ -45,6 +46,7 @@ class LearnReport:
     cv: CVResult | None
     paths: dict[str, Path]
     settings: LearnConfig
+    mixture: MixturePrior | None = None
 
     def table(self) -> str:
         """Fitted likelihoods with 95% intervals beside the naive fit, then the CV scores."""
@@ -87,6 +89,10 @@ class LearnReport:
             p = self.hybrid.likelihoods_[SPATIAL]
             lines.append(f"hybrid: terrain x (alpha + (1 - alpha) KDE/uniform)^gamma, gamma = {p['gamma']:.3f} "
                          f"(alpha = {p['alpha']:g}), KDE bandwidth {self.hybrid.spatial_bandwidth_:.0f} m")
+        if self.mixture is not None:
+            ws = ", ".join(f"{n} {w:.3f}" for n, w in zip(self.settings.mixture, self.mixture.weights_, strict=True))
+            lines.append(f"mixture: p = sum of w_k p_k, w = {ws} (chosen on {self.mixture.n_folds} cross-fitted folds of "
+                         f"{self.mixture.spatial_block:g} m blocks: held-out {self.mixture.cv_loglik_:.3f} nats/point)")
         if self.cv is not None:
             s = self.cv.summary()
             nf = s["folds"]
@@ -157,6 +163,13 @@ def diagnostics(report: LearnReport) -> dict:
                                                    "bandwidth_loglik": report.hybrid.bandwidth_loglik_,
                                                    "block_m": report.hybrid.spatial_block,
                                                    "folds": report.hybrid.spatial_folds}
+    if report.mixture is not None:
+        names = list(report.settings.mixture)
+        out["mixture"] = {"weights": dict(zip(names, report.mixture.weights_, strict=True)),
+                          "cv_loglik_nats": report.mixture.cv_loglik_, "block_m": report.mixture.spatial_block,
+                          "folds": report.mixture.n_folds,
+                          "components": {n: fit_info(e) | {"features": list(e.feature_names)}
+                                         for n, e in zip(names, report.mixture.estimators_, strict=True)}}
     if report.cv is not None:
         out["cv"] = report.cv.summary()
     return _jsonable(out)
@@ -218,8 +231,14 @@ def prepare_learning(
                 f"so learn would not fit it{f' (nor {unused[1:]})' if unused[1:] else ''}: give it a form or a table, or "
                 "list the features to fit in [learn] features"
             )
+    mixed = [f for features in lc.mixture.values() for f in features if f not in names]
+    no_form = [f for f in dict.fromkeys(mixed) if f not in with_form and not (config.features[f].type in CATEGORICAL_TYPES
+                                                                          or config.features[f].categorical)]
+    if no_form:
+        raise ValueError(f"{config.path}: [learn.mixture] feature {no_form[0]!r} is continuous and has no form: add "
+                         f"[learn.forms.{no_form[0]}] form = \"decreasing\" (or increasing, spline, linear, road, bins)")
     for key, given in (("flexible", lc.flexible), ("forms", lc.forms)):
-        ignored = sorted(set(given) - set(names))
+        ignored = sorted(set(given) - set(names) - set(mixed))
         if ignored:
             raise ValueError(f"{config.path}: [learn] {key} names {ignored}, which this fit does not include "
                              "(see [learn] features and the [likelihood.*] tables)")
@@ -246,6 +265,17 @@ def fit_hybrid(
     return clone(est).set_params(spatial_bandwidth=float(bw), spatial_block=lc.block_size_m, spatial_folds=lc.folds).fit(pts, sample_weight=sample_weight)
 
 
+def fit_mixture(est: PriorEstimator, pts: np.ndarray, lc: LearnConfig, sample_weight: np.ndarray | None = None) -> MixturePrior:
+    """The mixture of ``lc.mixture``'s components (``est``'s settings, each with its own features and their
+    forms), its weights cross-fitted on ``lc``'s blocks and folds, fitted on points (N, 2) in metres."""
+    components = tuple(
+        clone(est).set_params(feature_names=features,
+                              forms={k: v for k, v in (est.forms or {}).items() if k in features} or None,
+                              flexible={k: v for k, v in (est.flexible or {}).items() if k in features} or None)
+        for features in lc.mixture.values())
+    return MixturePrior(components, spatial_block=lc.block_size_m, n_folds=lc.folds).fit(pts, sample_weight=sample_weight)
+
+
 def learning_inputs(
     region: str | Path, targets: str | Path, layer: str | None = None, progress: bool = True,
 ) -> tuple[RegionConfig, LearnConfig, np.ndarray, PriorEstimator]:
@@ -268,10 +298,13 @@ def learn_region(
     hybrid_prior: str | Path | None = None,
     progress: bool = True,
     weights: str | None = None,
+    mixture_prior: str | Path | None = None,
 ) -> LearnReport:
     """Fit, evaluate and write (see the module doc). ``hybrid_prior``: also write the hybrid
     prior GeoTIFF there (the spatial term cannot be expressed as a likelihood table). ``weights``: a
     column of the targets giving each point's weight (default ``[learn] weights``; none: all 1).
+    With ``[learn.mixture]``: each component's tables beside ``out`` (``<stem>.mixture.<name>.toml``) and,
+    given ``mixture_prior``, the mixture prior GeoTIFF there (a mixture is not one set of tables).
     Grids larger than memory: :func:`pipeline.tiled.learn.learn_region_tiled`."""
     config, lc, pts, est = prepare_learning(region, targets, layer, x, y, targets_crs)
     column = weights or lc.weights
@@ -287,9 +320,18 @@ def learn_region(
         models = ("uniform", "naive", "terrain", "kde", "hybrid") if lc.hybrid else ("uniform", "naive", "terrain", "kde")
         result = block_cv(pts, est, lc.folds, lc.block_size_m,
                           np.asarray(lc.bandwidths_m) if lc.bandwidths_m else None, models, progress, sample_weight=w)
-    report = write_report(LearnReport(est, naive, hyb, result, report_paths(out), lc), targets)
+    mix = fit_mixture(est, pts, lc, sample_weight=w) if lc.mixture else None
+    if mixture_prior is not None and mix is None:
+        raise ValueError("--mixture-prior: the config has no [learn.mixture] tables")
+    report = write_report(LearnReport(est, naive, hyb, result, report_paths(out), lc, mix), targets)
     if hybrid_prior is not None and hyb is not None:
         report.paths["hybrid_prior"] = hyb.prior_.write(hybrid_prior)
+    if mix is not None:
+        for name, e in zip(lc.mixture, mix.estimators_, strict=True):
+            report.paths[f"mixture {name}"] = Path(out).with_suffix(f".mixture.{name}.toml")
+            e.model_.write_toml(report.paths[f"mixture {name}"])
+        if mixture_prior is not None:
+            report.paths["mixture_prior"] = mix.prior_.write(mixture_prior)
     return report
 
 

@@ -165,3 +165,61 @@ def test_build_model_applies_tempering_and_defensive_mixture_as_scored(weighted_
     bad = LikelihoodModel(model.terms, {"learned": {"defensive_epsilon": 1.5}})
     with pytest.raises(PriorError, match="defensive_epsilon"):
         build_region_prior(region, bad, progress=False)
+
+
+def test_learn_fits_a_mixture_whose_prior_is_the_weighted_sum_of_its_components_built_from_their_tables(
+        weighted_targets, tmp_path, capsys) -> None:
+    from pipeline.prior import TerrainPrior
+
+    _, csv, _, _ = weighted_targets
+    doc = tomllib.loads(cut_config(tmp_path, {"folds": 2, "block_size_m": 1500.0, "hybrid": False}).read_text())
+    doc["features"]["elevation"] = {"type": "elevation", "layer": "dem"}
+    doc["learn"]["features"] = ["water", "road_distance"]
+    doc["learn"]["forms"] = {"elevation": {"form": "linear"}}
+    doc["learn"]["mixture"] = {"roads": {"features": ["water", "road_distance"]}, "relief": {"features": ["water", "elevation"]}}
+    cfg = write_config(tmp_path / "mix.toml", doc)
+    out, mix_tif = tmp_path / "m.toml", tmp_path / "mix.tif"
+    assert main(["-q", "learn", str(cfg), "--targets", str(csv), "--out", str(out), "--no-cv", "--mixture-prior", str(mix_tif)]) == 0
+    printed = capsys.readouterr().out
+    assert "mixture: p = sum of w_k p_k, w = roads " in printed and "relief" in printed
+    diag = json.loads(out.with_suffix(".diagnostics.json").read_text())
+    weights = diag["mixture"]["weights"]
+    assert set(weights) == {"roads", "relief"} and sum(weights.values()) == pytest.approx(1.0)
+    assert diag["mixture"]["components"]["relief"]["features"] == ["water", "elevation"]
+    mixed = TerrainPrior.read(mix_tif).density
+    built = 0.0
+    for name, w in weights.items():
+        tables = out.with_suffix(f".mixture.{name}.toml")
+        assert set(LikelihoodModel.read_toml(tables).terms) == set(diag["mixture"]["components"][name]["features"])
+        tif = tmp_path / f"{name}.tif"
+        assert main(["-q", "build", str(cfg), "--model", str(tables), "--out", str(tif)]) == 0
+        built = built + w * np.asarray(TerrainPrior.read(tif).density, dtype=np.float64)
+    np.testing.assert_allclose(np.asarray(mixed, dtype=np.float64), built, rtol=1e-4, atol=1e-6 * built.max())
+
+
+def test_mixture_config_and_option_errors_are_named(weighted_targets, tmp_path, capsys) -> None:
+    _, csv, _, _ = weighted_targets
+    for mixture, key in [({"a": {"features": ["water"]}}, "learn.mixture: expected at least 2"),
+                         ({"a": {"features": ["water"]}, "b": {"feats": ["water"]}}, "learn.mixture.b: expected a table"),
+                         ({"a": {"features": ["water"]}, "b": {"features": []}}, "learn.mixture.b.features"),
+                         ({"a": {"features": ["water"]}, "b": {"features": ["nope"]}}, "learn.mixture.b.features: no feature 'nope'")]:
+        cfg = cut_config(tmp_path, {"mixture": mixture})
+        with pytest.raises(ConfigError, match=key) as info:
+            load_learn_config(cfg)
+        assert str(cfg) in str(info.value)
+    doc = tomllib.loads(cut_config(tmp_path, {"hybrid": False}).read_text())
+    doc["features"]["elevation"] = {"type": "elevation", "layer": "dem"}
+    doc["learn"]["features"] = ["water", "road_distance"]
+    doc["learn"]["mixture"] = {"a": {"features": ["water"]}, "b": {"features": ["water", "elevation"]}}
+    cfg = write_config(tmp_path / "noform.toml", doc)
+    out = tmp_path / "m.toml"
+    assert main(["-q", "learn", str(cfg), "--targets", str(csv), "--out", str(out), "--no-cv"]) == 1
+    assert "[learn.mixture] feature 'elevation' is continuous and has no form" in capsys.readouterr().err
+    assert main(["-q", "learn", str(cfg), "--targets", str(csv), "--out", str(out), "--tiled"]) == 1
+    assert "[learn.mixture] needs the whole grid" in capsys.readouterr().err
+    plain = cut_config(tmp_path, {"hybrid": False})
+    assert main(["-q", "learn", str(plain), "--targets", str(csv), "--out", str(out), "--no-cv", "--mixture-prior",
+                 str(tmp_path / "x.tif")]) == 1
+    err = capsys.readouterr().err
+    assert "--mixture-prior: the config has no [learn.mixture] tables" in err and "Traceback" not in err
+    assert not out.exists() and not (tmp_path / "x.tif").exists()
