@@ -12,7 +12,11 @@ log(1 + d), penalised splines of slope and elevation, ε and τ cross-fitted); w
 config's ``[learn] features`` (those plus splines in log(1 + d) of the distances to farm tracks and to
 their end points, and a decreasing distance to the place points); each one's hybrid with the KDE of
 the training points; and Maxent variants (feature classes, regularisation multiplier β) on each of the
-two fitted feature sets, so the peer sees the same grids as every model it is compared with.
+two fitted feature sets, so the peer sees the same grids as every model it is compared with. **Picked
+after seeing the outer folds** (session 16, so not blind): the config's ``[learn.mixture]``, a
+:class:`pipeline.learn.MixturePrior` of two fitted-forms models (the 8 features plus the distance to
+residential streets, towns; plus the distance to water bodies, farmland), its weights cross-fitted on
+each outer fit's own 2 km blocks, and Maxent on all ten features.
 Maxent's raw output is turned into a density on the grid like ours: evaluated on every cell, zero
 on water (the same structural zero our models have), divided by its sum times the cell area. Gains
 are held-out nats per point over the uniform density on the grid; per fold and pooled (weighted by
@@ -69,8 +73,10 @@ def swellendam():
     return cfg, learn, stack, pts
 
 
-def ours(cfg, learn, stack, pts) -> tuple[dict, list]:
-    """block_cv of our models; the folds' held-out indices."""
+def ours(cfg, learn, stack, pts) -> tuple[dict, list, dict]:
+    """block_cv of our models and the mixture's outer CV on the same folds; the folds' held-out indices;
+    the mixture's weights per fold."""
+    from pipeline.learn import MixturePrior, with_mixture
     from pipeline.learn.estimator import PriorEstimator
     from pipeline.learn.evaluate import block_cv
 
@@ -99,7 +105,16 @@ def ours(cfg, learn, stack, pts) -> tuple[dict, list]:
         print(name, {k: np.round(v, 3).tolist() for k, v in out.items() if not k.endswith("seconds")}, flush=True)
         index = cv.extra["test_index"] if index is None else index
         assert all(np.array_equal(a, b) for a, b in zip(index, cv.extra["test_index"], strict=True))
-    return out, index
+    t = time.process_time()
+    name = "terrain mixture (towns + farmland)"
+    components = tuple(forms(f) for f in learn.mixture.values())
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        mixed = with_mixture(cv, MixturePrior(components, spatial_block=BLOCK_M), pts)
+    out[name] = mixed.gains()[:, mixed.models.index("mixture")]
+    out[f"{name} seconds"] = time.process_time() - t
+    print(name, np.round(out[name], 3).tolist(), mixed.extra["mixture_weights"], flush=True)
+    return out, index, {name: mixed.extra["mixture_weights"]}
 
 
 def maxent(stack, pts, index, variants: dict, names: tuple[str, ...], n_background: int, seed: int = 0) -> dict:
@@ -150,11 +165,13 @@ def run(quick: bool = False) -> dict:
     if not DATA.exists():
         return {"skipped": f"{DATA} missing", "table": [f"maxent: skipped ({DATA} missing)"]}
     cfg, learn, stack, pts = swellendam()
-    mine, index = ours(cfg, learn, stack, pts)
+    mine, index, mixture_weights = ours(cfg, learn, stack, pts)
     base = dict(list(MAXENT_VARIANTS.items())[: 2 if quick else 3])
     peers = {}
     # Maxent sees the same feature grids as each of our fitted-forms models
-    for tag, names in (("", SESSION5), (" +tracks, ends, towns", learn.features)):
+    mixed = tuple(dict.fromkeys(f for features in learn.mixture.values() for f in features))
+    for tag, names in (("", SESSION5), (" +tracks, ends, towns", learn.features),
+                       (" +tracks, ends, towns, residential, water bodies", mixed)):
         out = maxent(stack, pts, index, base, names, 10_000 if quick else 30_000)
         peers.update({k.replace(" seconds", "") + tag + (" seconds" if k.endswith("seconds") else ""): v for k, v in out.items()})
     variants = [k for k in peers if not k.endswith("seconds")]
@@ -186,7 +203,7 @@ def run(quick: bool = False) -> dict:
         "forms": {k: dataclasses.asdict(v) for k, v in learn.forms.items()},
         "gains_nats": {k: v.tolist() for k, v in gains.items()},
         "seconds": {k.removesuffix(" seconds"): v for k, v in {**mine, **peers}.items() if k.endswith("seconds")},
-        "best_maxent_per_fold": best_maxent.tolist(), "verdict": verdict,
+        "best_maxent_per_fold": best_maxent.tolist(), "mixture_weights": mixture_weights, "verdict": verdict,
         "table": [*rows, *goals, verdict],
     }
 

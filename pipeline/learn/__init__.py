@@ -6,7 +6,14 @@ case) are imported from their modules.
 
 from pipeline.gis.targets import read_targets
 from pipeline.learn.estimator import SPATIAL, PriorEstimator, make_terms, template_start
-from pipeline.learn.evaluate import MODELS, CVResult, FoldModels, block_cv, default_bandwidths
+from pipeline.learn.evaluate import (
+    MODELS,
+    CVResult,
+    FoldModels,
+    block_cv,
+    default_bandwidths,
+    with_mixture,
+)
 from pipeline.learn.kde import block_folds, block_ids, fit_kde_cv, grid_kde, log_kde_feature
 from pipeline.learn.mixture import MixturePrior, simplex_weights
 from pipeline.learn.sufficient import (
@@ -24,5 +31,5 @@ __all__ = [
     "MODELS", "SPATIAL", "CVResult", "CellStats", "FoldModels", "MixturePrior", "PointStats", "PriorEstimator", "Term",
     "block_cv", "block_folds", "block_ids", "cached_cell_stats", "cell_stats", "check_points",
     "default_bandwidths", "fit_kde_cv", "grid_kde", "log_kde_feature", "make_terms", "point_stats", "read_targets", "simplex_weights",
-    "template_start", "with_range",
+    "template_start", "with_mixture", "with_range",
 ]

@@ -11,6 +11,7 @@ model on a training fold, one scorer per model scores it on the held-out fold.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import partial
@@ -25,6 +26,7 @@ from tqdm import tqdm
 from pipeline.features.stack import FeatureStack
 from pipeline.learn.estimator import PriorEstimator
 from pipeline.learn.kde import block_ids, fit_kde_cv
+from pipeline.learn.mixture import MixturePrior
 from pipeline.learn.sufficient import check_points
 
 MODELS = ("uniform", "naive", "terrain", "kde", "hybrid")
@@ -85,6 +87,26 @@ class CVResult:
                 m: int((np.abs(g[:, h] - g[:, j]) <= TIE_NATS).sum()) for j, m in enumerate(self.models) if m != "hybrid"
             }
         return out
+
+
+def with_mixture(cv: CVResult, mixture: MixturePrior, points: np.ndarray, sample_weight: np.ndarray | None = None) -> CVResult:
+    """``cv`` with a "mixture" column: ``mixture`` (unfitted settings) fitted on each fold's training
+    points (the other folds' held-out points, so the same folds as every other model; its weights
+    cross-fitted on those points' own blocks) and scored on the fold (nats per point, density per m²);
+    its weights per fold in ``extra["mixture_weights"]``."""
+    pts = check_points(points)
+    index = cv.extra["test_index"]
+    column, weights = [], []
+    for j, test in enumerate(index):
+        train = np.concatenate([i for k, i in enumerate(index) if k != j])
+        fitted = clone(mixture).fit(pts[train], sample_weight=None if sample_weight is None else np.asarray(sample_weight)[train])
+        ld = fitted.score_samples(pts[test])
+        if not np.all(np.isfinite(ld)):
+            raise ValueError(f"block_cv: the mixture gives zero density to {int((~np.isfinite(ld)).sum())} held-out points")
+        column.append(float(ld.mean()))
+        weights.append(fitted.weights_.tolist())
+    return dataclasses.replace(cv, models=(*cv.models, "mixture"), scores=np.column_stack([cv.scores, column]),
+                               extra={**cv.extra, "mixture_weights": weights})
 
 
 def kde_log_mass(points: np.ndarray, bandwidth: float, bounds: tuple[float, float, float, float]) -> float:

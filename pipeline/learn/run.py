@@ -24,7 +24,7 @@ from pipeline.config.region import RegionConfig
 from pipeline.gis.layers import LayerSpec, read_vector
 from pipeline.gis.targets import read_targets
 from pipeline.learn.estimator import SPATIAL, PriorEstimator
-from pipeline.learn.evaluate import CVResult, block_cv, default_bandwidths
+from pipeline.learn.evaluate import CVResult, block_cv, default_bandwidths, with_mixture
 from pipeline.learn.forms import from_scale
 from pipeline.learn.kde import block_ids, fit_kde_cv
 from pipeline.learn.mixture import MixturePrior
@@ -320,9 +320,11 @@ def learn_region(
         models = ("uniform", "naive", "terrain", "kde", "hybrid") if lc.hybrid else ("uniform", "naive", "terrain", "kde")
         result = block_cv(pts, est, lc.folds, lc.block_size_m,
                           np.asarray(lc.bandwidths_m) if lc.bandwidths_m else None, models, progress, sample_weight=w)
-    mix = fit_mixture(est, pts, lc, sample_weight=w) if lc.mixture else None
-    if mixture_prior is not None and mix is None:
+    if mixture_prior is not None and not lc.mixture:
         raise ValueError("--mixture-prior: the config has no [learn.mixture] tables")
+    mix = fit_mixture(est, pts, lc, sample_weight=w) if lc.mixture else None
+    if result is not None and mix is not None:
+        result = with_mixture(result, clone(mix), pts, sample_weight=w)
     report = write_report(LearnReport(est, naive, hyb, result, report_paths(out), lc, mix), targets)
     if hybrid_prior is not None and hyb is not None:
         report.paths["hybrid_prior"] = hyb.prior_.write(hybrid_prior)

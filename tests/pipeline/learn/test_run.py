@@ -179,10 +179,12 @@ def test_learn_fits_a_mixture_whose_prior_is_the_weighted_sum_of_its_components_
     doc["learn"]["mixture"] = {"roads": {"features": ["water", "road_distance"]}, "relief": {"features": ["water", "elevation"]}}
     cfg = write_config(tmp_path / "mix.toml", doc)
     out, mix_tif = tmp_path / "m.toml", tmp_path / "mix.tif"
-    assert main(["-q", "learn", str(cfg), "--targets", str(csv), "--out", str(out), "--no-cv", "--mixture-prior", str(mix_tif)]) == 0
+    assert main(["-q", "learn", str(cfg), "--targets", str(csv), "--out", str(out), "--mixture-prior", str(mix_tif)]) == 0
     printed = capsys.readouterr().out
     assert "mixture: p = sum of w_k p_k, w = roads " in printed and "relief" in printed
+    assert any(line.split()[:1] == ["mixture"] and len(line.split()) == 5 for line in printed.splitlines())  # its CV row
     diag = json.loads(out.with_suffix(".diagnostics.json").read_text())
+    assert len(diag["cv"]["gain_nats"]["mixture"]["per_fold"]) == 2
     weights = diag["mixture"]["weights"]
     assert set(weights) == {"roads", "relief"} and sum(weights.values()) == pytest.approx(1.0)
     assert diag["mixture"]["components"]["relief"]["features"] == ["water", "elevation"]

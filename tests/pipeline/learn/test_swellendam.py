@@ -73,7 +73,8 @@ def test_hybrid_beats_uniform_naive_terrain_and_kde(swellendam_fit) -> None:
 
 def test_learning_config_reads_the_farm_tracks_and_fits_every_listed_feature(swellendam: Path, tmp_path) -> None:
     """terrain_data/swellendam_learn.toml: its tracks layer is exactly the roads layer's tracks, paths and
-    footways (counted straight from the file), and every [learn] feature has a form."""
+    footways and its residential layer the residential streets (counted straight from the file), and every
+feature of [learn] and of its mixture has a form."""
     import pyogrio
 
     from pipeline.gis.layers import read_vector
@@ -86,7 +87,10 @@ def test_learning_config_reads_the_farm_tracks_and_fits_every_listed_feature(swe
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         tracks = read_vector(cfg.layers["tracks"], cfg.grid)
+        streets = read_vector(cfg.layers["residential"], cfg.grid)
     assert len(tracks.geometries) == int(highway.isin(["track", "path", "footway"]).sum()) > 100
     assert cfg.features["track_end_distance"].to == "ends"
-    continuous = [f for f in learn.features if cfg.features[f].type not in ("mask", "categories")]
-    assert continuous and all(f in learn.forms for f in continuous)
+    assert len(streets.geometries) == int((highway == "residential").sum()) > 100
+    fitted = [*learn.features, *(f for features in learn.mixture.values() for f in features)]
+    continuous = [f for f in fitted if cfg.features[f].type not in ("mask", "categories")]
+    assert continuous and all(f in learn.forms for f in continuous) and len(learn.mixture) == 2
