@@ -748,7 +748,9 @@ def calibration_nll(eps: float, tau: float, per_fold: list, lr: np.ndarray, log_
         rho = np.exp(np.log1p(-eps) + logp - mix)  # the model's share of each point's mixture density
         d_eps = np.exp(log_u - mix) - np.exp(logp - mix)
     else:
-        mix, rho, d_eps = logp, np.ones(len(lr)), np.exp(log_u - logp) - 1.0
+        # the one-sided derivative at ε = 0 is unbounded when a point has p ≪ u: capped (e^700) so that
+        # L-BFGS-B gets a finite, steep gradient towards ε > 0 rather than an overflow
+        mix, rho, d_eps = logp, np.ones(len(lr)), np.exp(np.minimum(log_u - logp, 700.0)) - 1.0
     grad = [-(w @ d_eps)] * free[0] + [-(w @ (rho * dlogp))] * free[1]
     return -float(w @ mix), np.array(grad, dtype=np.float64)
 

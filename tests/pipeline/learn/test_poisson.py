@@ -104,3 +104,16 @@ def test_calibration_gradient_matches_central_differences() -> None:
         fd_eps = (calibration_nll(e_hi, tau, per_fold, lr, log_u, w)[0] - calibration_nll(e_lo, tau, per_fold, lr, log_u, w)[0]) / (e_hi - e_lo)
         assert g[1] == pytest.approx(fd_tau, rel=1e-5, abs=1e-8)
         assert g[0] == pytest.approx(fd_eps, rel=1e-3 if eps == 0 else 1e-5, abs=1e-7)
+
+
+def test_calibration_gradient_at_zero_epsilon_is_finite_for_a_point_far_below_uniform() -> None:
+    """A held-out point 800 nats below the uniform density: the one-sided ε-derivative at 0 is unbounded;
+    it comes out finite, steep and towards ε > 0, with no overflow."""
+    from pipeline.learn.estimator import calibration_nll
+
+    per_fold = [(np.ones(3, bool), np.zeros(4), np.log(np.full(4, 100.0)))]
+    lr = np.array([0.0, 0.0, -800.0])
+    w = np.full(3, 1 / 3)
+    with np.errstate(over="raise"):
+        value, g = calibration_nll(0.0, 1.0, per_fold, lr, -np.log(400.0), w)
+    assert np.isfinite(value) and np.isfinite(g).all() and g[0] < -1e300
