@@ -102,7 +102,7 @@ def with_mixture(cv: CVResult, mixture: MixturePrior, points: np.ndarray, sample
         fitted = clone(mixture).fit(pts[train], sample_weight=None if sample_weight is None else np.asarray(sample_weight)[train])
         ld = fitted.score_samples(pts[test])
         if not np.all(np.isfinite(ld)):
-            raise ValueError(f"block_cv: the mixture gives zero density to {int((~np.isfinite(ld)).sum())} held-out points")
+            raise ValueError(f"with_mixture: the mixture gives zero density to {int((~np.isfinite(ld)).sum())} held-out points")
         column.append(float(ld.mean()))
         weights.append(fitted.weights_.tolist())
     return dataclasses.replace(cv, models=(*cv.models, "mixture"), scores=np.column_stack([cv.scores, column]),

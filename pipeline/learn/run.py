@@ -307,6 +307,8 @@ def learn_region(
     given ``mixture_prior``, the mixture prior GeoTIFF there (a mixture is not one set of tables).
     Grids larger than memory: :func:`pipeline.tiled.learn.learn_region_tiled`."""
     config, lc, pts, est = prepare_learning(region, targets, layer, x, y, targets_crs)
+    if mixture_prior is not None and not lc.mixture:  # before any fit
+        raise ValueError("--mixture-prior: the config has no [learn.mixture] tables")
     column = weights or lc.weights
     w = read_target_weights(targets, config.grid, layer, column) if column else None
     if w is not None and len(w) != len(pts):
@@ -320,8 +322,6 @@ def learn_region(
         models = ("uniform", "naive", "terrain", "kde", "hybrid") if lc.hybrid else ("uniform", "naive", "terrain", "kde")
         result = block_cv(pts, est, lc.folds, lc.block_size_m,
                           np.asarray(lc.bandwidths_m) if lc.bandwidths_m else None, models, progress, sample_weight=w)
-    if mixture_prior is not None and not lc.mixture:
-        raise ValueError("--mixture-prior: the config has no [learn.mixture] tables")
     mix = fit_mixture(est, pts, lc, sample_weight=w) if lc.mixture else None
     if result is not None and mix is not None:
         result = with_mixture(result, clone(mix), pts, sample_weight=w)
