@@ -140,6 +140,7 @@ class LazyPyramid:
         self._pinned_blocks = 0  # pool slots the pinned tiles hold (at most)
         self._geometry: list[tuple[float, float, float, int, int, int, int]] = []  # s, h, origin, nu, nv, nbu, table offset
         self.slots = np.full(0, MISSING, np.int32)
+        self._packed: ss.Packed | None = None  # packed()'s arrays for the levels so far
         self.tiles_built = 0
         self.cells_read = 0
         self.client = client
@@ -157,6 +158,8 @@ class LazyPyramid:
 
     def _grow(self, top_scale: float) -> None:
         """Add levels (empty tables) up to the first with s_k >= ``top_scale``, as the whole pyramid does."""
+        if self._geometry and self._geometry[-1][0] >= top_scale:
+            return
         tables = [self.slots]
         size = self.slots.size
         while not self._geometry or self._geometry[-1][0] < top_scale:
@@ -400,11 +403,15 @@ class LazyPyramid:
         return len(self._geometry)
 
     def packed(self) -> ss.Packed:
-        """The levels' geometry as the kernel reads it, with ``coef`` the pool and ``offset`` into :attr:`slots`."""
+        """The levels' geometry as the kernel reads it, with ``coef`` the pool and ``offset`` into :attr:`slots`
+        (made again only when :meth:`_grow` has added levels)."""
+        if self._packed is not None and self._packed.scale.size == len(self._geometry):
+            return self._packed
         g = self._geometry
         col = [np.array([x[i] for x in g]) for i in range(5)]
-        return ss.Packed(col[0], col[1], col[2], col[2].copy(), col[3].astype(np.int64), col[4].astype(np.int64),
-                         np.array([x[6] for x in g], np.int64), self.pool.reshape(-1))
+        self._packed = ss.Packed(col[0], col[1], col[2], col[2].copy(), col[3].astype(np.int64), col[4].astype(np.int64),
+                                 np.array([x[6] for x in g], np.int64), self.pool.reshape(-1))
+        return self._packed
 
     # --- integrals --------------------------------------------------------------------------
 
@@ -440,6 +447,8 @@ class LazyPyramid:
         """Integrals ``todo`` (kernel order) with their tiles built, widening the plan for any whose
         look-ups found a block missing (NaN); ``values``/``frames``: the cells for Gaussians finer than
         level 0 (:func:`~tracker.integrate.scalespace._window`)."""
+        if not todo.size:
+            return
         with _threads(_threads_for(todo.size)):
             for widen in (0, 1, 2):
                 if not todo.size:
@@ -593,6 +602,9 @@ class LazyPyramid:
 def _threads(n: int) -> Iterator[None]:
     """numba's thread count set to ``n`` within the block (numba keeps it per calling thread)."""
     before = nb.get_num_threads()
+    if n == before:  # the common case of small batches on one thread: setting it costs ~4 µs a call
+        yield
+        return
     nb.set_num_threads(n)
     try:
         yield
