@@ -283,7 +283,8 @@ class LazyPyramid:
             self.cells_read += cells
         else:
             nu, nv = self._geometry[k][3:5]
-            (padded,) = _padded_coefficients(lambda *window: self._values(k, *window), nu, nv, self._side(k), tv, tv, tu, tu)
+            values = _prefiltered(lambda *window: self._values(k, *window), nu, nv)
+            (padded,) = _padded_coefficients(values, nu, nv, self._side(k), tv, tv, tu, tu)
         self._insert(k, tv, tu, padded)
 
     def _insert(self, k: int, tv: int, tu: int, padded: np.ndarray) -> None:
@@ -691,21 +692,32 @@ def read_cells(source: CellSource, squared: bool, r0: int, r1: int, c0: int, c1:
     return values * values if squared else values
 
 
-def _padded_coefficients(values, nu: int, nv: int, side: int, tv0: int, tv1: int, tu0: int, tu1: int) -> list[np.ndarray]:
+def _prefiltered(values, nu: int, nv: int):
+    """``coefficients(r_lo, r_hi, c_lo, c_hi)`` for :func:`_padded_coefficients` from the node values of
+    a level with an (nv, nu) lattice on a window, ``values(j0, j1, i0, i1)``: the finite prefilter over
+    them (float32)."""
+
+    def coefficients(r_lo: int, r_hi: int, c_lo: int, c_hi: int) -> np.ndarray:
+        fsv, fwv = ss._fir_weights(r_lo, r_hi, nv)
+        fsu, fwu = ss._fir_weights(c_lo, c_hi, nu)
+        w_v0, w_u0 = int(fsv[0]), int(fsu[0])
+        window = values(w_v0, int(fsv[-1]) + fwv.shape[1], w_u0, int(fsu[-1]) + fwu.shape[1])
+        return ss._separable(window, fsu - w_u0, fwu, fsv - w_v0, fwv).astype(np.float32)
+
+    return coefficients
+
+
+def _padded_coefficients(coefficients, nu: int, nv: int, side: int, tv0: int, tv1: int, tu0: int, tu1: int) -> list[np.ndarray]:
     """Tiles (tv, tu), tv0 <= tv <= tv1, tu0 <= tu <= tu1 (``side`` nodes a side, rows first) of a level
     with an (nv, nu) lattice: their cubic B-spline coefficients with the one-before, two-after apron,
-    zeros beyond the lattice (as ``scalespace._tile``), float32 (side + 3)² each, from one prefilter
-    pass over the rectangle. ``values(j0, j1, i0, i1)`` gives the level's node values on a window
-    (each node's band and weights are the whole lattice's, so a rectangle's tiles are the numbers of
-    tiles built one by one)."""
+    zeros beyond the lattice (as ``scalespace._tile``), float32 (side + 3)² each, from one call of
+    ``coefficients(r_lo, r_hi, c_lo, c_hi)`` (float32 at those nodes: :func:`_prefiltered`, or
+    ``scalespace.fused_coefficients``) for the rectangle (each node's bands and weights are the whole
+    lattice's, so a rectangle's tiles are the numbers of tiles built one by one)."""
     # The rectangle's coefficient nodes with their aprons, within the lattice.
     r_lo, r_hi = max(tv0 * side - 1, 0), min((tv1 + 1) * side + 2, nv)
     c_lo, c_hi = max(tu0 * side - 1, 0), min((tu1 + 1) * side + 2, nu)
-    fsv, fwv = ss._fir_weights(r_lo, r_hi, nv)
-    fsu, fwu = ss._fir_weights(c_lo, c_hi, nu)
-    w_v0, w_u0 = int(fsv[0]), int(fsu[0])
-    window = values(w_v0, int(fsv[-1]) + fwv.shape[1], w_u0, int(fsu[-1]) + fwu.shape[1])
-    coef = ss._separable(window, fsu - w_u0, fwu, fsv - w_v0, fwv).astype(np.float32)
+    coef = coefficients(r_lo, r_hi, c_lo, c_hi)
     tiles = []
     for tv in range(tv0, tv1 + 1):
         av = tv * side
@@ -729,16 +741,24 @@ def cell_tiles(source: CellSource, squared: bool, shape: tuple[int, int], k: int
     s, h, origin, nu, nv = ss.lattice(k, shape)
     read = [0]
 
+    def cells(r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+        window = read_cells(source, squared, r0, r1, c0, c1)
+        read[0] += window.size
+        return window
+
     def values(j0: int, j1: int, i0: int, i1: int) -> np.ndarray:
         su, wu = ss._box_weights(origin + h * np.arange(i0, i1), shape[1], s)
         sv, wv = ss._box_weights(origin + h * np.arange(j0, j1), shape[0], s)
         c0, r0 = int(su.min()), int(sv.min())
-        cells = read_cells(source, squared, r0, int(sv.max()) + wv.shape[1], c0, int(su.max()) + wu.shape[1])
-        read[0] += cells.size
-        return ss._separable(cells, su - c0, wu, sv - r0, wv)
+        return ss._separable(cells(r0, int(sv.max()) + wv.shape[1], c0, int(su.max()) + wu.shape[1]), su - c0, wu, sv - r0, wv)
 
+    if k < ss.FUSED_LEVELS:
+        def coefficients(r_lo: int, r_hi: int, c_lo: int, c_hi: int) -> np.ndarray:
+            return ss.fused_coefficients(cells, k, shape, (r_lo, r_hi), (c_lo, c_hi))
+    else:
+        coefficients = _prefiltered(values, nu, nv)
     with _threads(1):  # a tile's kernels are short: one thread each (a worker's threads share the cores)
-        return _padded_coefficients(values, nu, nv, side, tv0, tv1, tu0, tu1), read[0]
+        return _padded_coefficients(coefficients, nu, nv, side, tv0, tv1, tu0, tu1), read[0]
 
 
 def rectangles(keys: list[tuple[int, int, int]], most: int) -> list[tuple[int, int, int, int, int]]:

@@ -133,8 +133,11 @@ class Pyramid:
                 s, h, origin, n_u, n_v = lattice(k, self.field.shape)
                 u = origin + h * np.arange(n_u)
                 v = origin + h * np.arange(n_v)
-                if k < CELL_LEVELS:
-                    values = _exact_level(self.field, u, v, s)
+                if k < FUSED_LEVELS:
+                    coef = fused_coefficients(lambda r0, r1, c0, c1: self.field[r0:r1, c0:c1], k, self.field.shape,
+                                              (0, n_v), (0, n_u))
+                elif k < CELL_LEVELS:
+                    coef = _prefilter(_exact_level(self.field, u, v, s))
                 else:
                     # The level below, sampled at its nodes, from its float32 coefficients: the same
                     # numbers whether it was built in this call or an earlier one.
@@ -143,8 +146,8 @@ class Pyramid:
                     else:
                         ps, ph, po = p.scale[-1], p.step[-1], p.u0[-1]
                         coef = _untile(p.coef[p.offset[-2] :], (int(p.nv[-1]), int(p.nu[-1])))
-                    values = _smooth(_node_values(coef), po, ph, u, v, np.sqrt(s * s - ps * ps))
-                new.append((s, h, origin, values.shape, _prefilter(values)))
+                    coef = _prefilter(_smooth(_node_values(coef), po, ph, u, v, np.sqrt(s * s - ps * ps)))
+                new.append((s, h, origin, coef.shape, coef))
                 k += 1
                 if s >= top_scale:
                     break
@@ -283,6 +286,47 @@ def _fir_weights(first: int, last: int, n: int) -> tuple[np.ndarray, np.ndarray]
     start, idx = _band(nodes - FIR, n, 2 * FIR + 1)
     gap = idx - nodes[:, None] + FIR
     return start, _TAPS[np.where((gap >= 0) & (gap <= 2 * FIR), gap, 2 * FIR + 1)]
+
+
+FUSED_LEVELS = 4
+"""Levels k < FUSED_LEVELS (s_k < 2 cells, more than one node per cell) get their coefficients from the
+cells in one banded pass with the prefilter folded into the cell weights (:func:`_fused_weights`): per
+output node ~(8 s + 14 h) cells a side instead of 8 s cells and then 2·FIR + 1 nodes, 1.3-1.7x fewer
+multiply-adds there; from s = 2 cells up (a node per cell or fewer) the two passes cost less."""
+
+
+def _fused_weights(first: int, last: int, n_nodes: int, origin: float, h: float, s: float, n_cells: int
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Banded weights from cells straight to the B-spline coefficients of the nodes [first, last) of a
+    cell level's axis (``n_nodes`` nodes at ``origin + h j``, ``n_cells`` cells): the prefilter's taps
+    (:func:`_fir_weights`) applied to the cell masses of their nodes (:func:`_box_weights`),
+    w[j, c] = Σ_t fir[j, t] ΔΦ(c; node fs_j + t), summed over t in order. (start, (nodes, band)): the
+    band is the same for every node of the level, so a tile's weights are the whole axis's."""
+    fs, fw = _fir_weights(first, last, n_nodes)
+    taps = fw.shape[1]
+    src0 = int(fs[0])
+    bs, bw = _box_weights(origin + h * np.arange(src0, int(fs[-1]) + taps), n_cells, s)
+    # box starts are floor(node) - reach clipped into the axis: 1-Lipschitz, so taps nodes apart they
+    # differ by at most ceil((taps - 1) h) + 1 cells
+    width = min(int(np.ceil((taps - 1) * h)) + 1 + bw.shape[1], n_cells)
+    start = np.minimum(bs[fs - src0], n_cells - width)
+    weights = np.zeros((fs.size, width))
+    rows = np.arange(fs.size)[:, None]
+    for t in range(taps):
+        m = fs - src0 + t
+        weights[rows, (bs[m] - start)[:, None] + np.arange(bw.shape[1])] += fw[:, t, None] * bw[m]
+    return start, weights
+
+
+def fused_coefficients(cells, k: int, shape: tuple[int, int], rows: tuple[int, int], cols: tuple[int, int]) -> np.ndarray:
+    """Level k's (< FUSED_LEVELS) coefficients (float32) at nodes ``rows`` x ``cols`` ([lo, hi) each) of
+    the lattice of a grid of ``shape`` cells, from ``cells(r0, r1, c0, c1)``, the grid's values on a window."""
+    s, h, origin, nu, nv = lattice(k, shape)
+    su, wu = _fused_weights(*cols, nu, origin, h, s, shape[1])
+    sv, wv = _fused_weights(*rows, nv, origin, h, s, shape[0])
+    c_lo, r_lo = int(su.min()), int(sv.min())
+    window = np.ascontiguousarray(cells(r_lo, int(sv.max()) + wv.shape[1], c_lo, int(su.max()) + wu.shape[1]))
+    return _separable(window, su - c_lo, wu, sv - r_lo, wv).astype(np.float32)
 
 
 def _prefilter(values: np.ndarray) -> np.ndarray:

@@ -109,6 +109,45 @@ def test_prefilter_and_node_values_match_scipy() -> None:
     np.testing.assert_allclose(scalespace._node_values(c), correlate1d(correlate1d(c, k, 0, mode="mirror"), k, 1, mode="mirror"), atol=1e-12)
 
 
+def _dense(start: np.ndarray, weights: np.ndarray, n_src: int) -> np.ndarray:
+    """Banded (start, weights) as a dense (nodes, n_src) matrix."""
+    out = np.zeros((start.size, n_src))
+    for j, (a, w) in enumerate(zip(start.tolist(), weights, strict=True)):
+        out[j, a : a + w.size] += w
+    return out
+
+
+@settings(max_examples=40, deadline=None)
+@given(k=st.integers(0, scalespace.FUSED_LEVELS - 1), n_cells=st.integers(1, 90), lo=st.floats(0, 1), span=st.floats(0, 1))
+def test_fused_weights_are_the_prefilter_times_the_cell_masses(k, n_cells, lo, span) -> None:
+    """Cells straight to coefficients: the banded fused weights of any run of nodes equal the dense
+    product (prefilter matrix) @ (cell-mass matrix) of the two passes they replace, on axes shorter
+    and longer than the bands."""
+    s, h, origin, n_nodes, _ = scalespace.lattice(k, (n_cells, n_cells))
+    first = int(lo * (n_nodes - 1))
+    last = min(first + 1 + int(span * n_nodes), n_nodes)
+    fs, fw = scalespace._fir_weights(first, last, n_nodes)
+    bs, bw = scalespace._box_weights(origin + h * np.arange(n_nodes), n_cells, s)
+    expected = _dense(fs, fw, n_nodes) @ _dense(bs, bw, n_cells)
+    start, weights = scalespace._fused_weights(first, last, n_nodes, origin, h, s, n_cells)
+    assert weights.shape[1] <= n_cells and start.min() >= 0 and (start + weights.shape[1]).max() <= n_cells
+    np.testing.assert_allclose(_dense(start, weights, n_cells), expected, rtol=0, atol=1e-15)
+
+
+def test_fused_levels_equal_the_two_pass_coefficients_to_float32_rounding() -> None:
+    """Levels below FUSED_LEVELS of a rough field: the one-pass coefficients against the cell sums
+    prefiltered (the two passes every other cell level takes), over the whole lattice and on a window."""
+    field = rough_field(seed=3)
+    for k in range(scalespace.FUSED_LEVELS):
+        s, h, origin, nu, nv = scalespace.lattice(k, field.shape)
+        two = scalespace._prefilter(scalespace._exact_level(field, origin + h * np.arange(nu), origin + h * np.arange(nv), s))
+        cells = lambda r0, r1, c0, c1: field[r0:r1, c0:c1]  # noqa: E731
+        got = scalespace.fused_coefficients(cells, k, field.shape, (0, nv), (0, nu))
+        np.testing.assert_allclose(got, two, rtol=0, atol=2e-7 * np.abs(two).max())
+        part = scalespace.fused_coefficients(cells, k, field.shape, (5, nv // 2), (nu // 3, nu - 4))
+        np.testing.assert_array_equal(part, got[5 : nv // 2, nu // 3 : nu - 4])
+
+
 def test_threads_sharing_a_prior_get_the_same_integrals() -> None:
     """Eight threads asking one new prior for different spreads at once (levels built concurrently)."""
     prior = TerrainPrior.from_array(rough_field(seed=6), GRID)
