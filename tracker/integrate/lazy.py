@@ -82,8 +82,6 @@ PAD_CACHE_BYTES = 768 << 20
 squares of 250 cells, the tracker bench's targets spread over a 50,000² prior, needs 400-900)."""
 SERIAL_BELOW = 1024
 """Batches of fewer integrals run on one thread (as the tracker's small integrator calls do)."""
-ROUND = 16
-"""Rectangles of cell-level tiles built at once on this process's threads."""
 RECTANGLE = 4
 """Most tiles a side of a rectangle of cell-level tiles built together (:func:`rectangles`): adjacent
 tiles share the cells and margins they read (8 s + 14 h + 2 cells a side, more than a tile at s = 16)."""
@@ -290,9 +288,16 @@ class LazyPyramid:
     def _insert(self, k: int, tv: int, tu: int, padded: np.ndarray) -> None:
         """Tile (tv, tu) of level k (its coefficients with their aprons, :func:`_padded_coefficients`) into
         free blocks of the pool."""
+        claim = self._claim(k, tv, tu)
+        _store_blocks(self.pool, claim[0], padded, claim[2], claim[3])
+        self._register((k, tv, tu), claim)
+
+    def _claim(self, k: int, tv: int, tu: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Free pool slots for tile (tv, tu) of level k's blocks within the lattice (evicting if need
+        be), not yet in the tables: (slots, their positions in :attr:`slots`, the tile's block rows and
+        columns kept)."""
         nu, nv, nbu, toff = self._geometry[k][3:]
         blocks = self.level_blocks(k)
-        tiles = np.lib.stride_tricks.sliding_window_view(padded, (ss.TILE + 3, ss.TILE + 3))[:: ss.TILE, :: ss.TILE]
         nbv = -(-nv // ss.TILE)
         gbv = tv * blocks + np.arange(blocks)
         gbu = tu * blocks + np.arange(blocks)
@@ -300,41 +305,63 @@ class LazyPyramid:
         n = keep_v.size * keep_u.size
         self._make_room(n)
         slots = np.array([self._free.pop() for _ in range(n)], np.int32)
-        self.pool[slots] = tiles[np.ix_(keep_v, keep_u)].reshape(n, _BLOCK)
-        table = toff + (gbv[keep_v][:, None] * nbu + gbu[keep_u][None, :]).ravel()
+        return slots, toff + (gbv[keep_v][:, None] * nbu + gbu[keep_u][None, :]).ravel(), keep_v, keep_u
+
+    def _register(self, key: tuple[int, int, int], claim: tuple[np.ndarray, ...]) -> None:
+        """Tile ``key``, whose :meth:`_claim`-ed slots hold its blocks, into the tables: built, and the
+        most recently used until its batch pins it."""
+        slots, table = claim[:2]
         self.slots[table] = slots
-        self._tiles[(k, tv, tu)] = table
-        self._used[self._tile_ids(k, tv, tu)] = self._clock  # the most recently used, until its batch pins it
+        self._tiles[key] = table
+        self._used[self._tile_ids(*key)] = self._clock
         self._clock += 1
         self.tiles_built += 1
 
     def _build_cell_tiles(self, keys: list[tuple[int, int, int]]) -> None:
         """The missing cell-level tiles among ``keys``, built by rectangles of adjacent tiles of a level
         (:func:`rectangles`, at most :data:`RECTANGLE` a side: their cells and margins read once,
-        :func:`cell_tiles`), then put into the pool here: on the workers of :attr:`client`
-        (``dask.distributed``) if there is one, else on this process's threads (numba's thread count;
-        the kernels release the GIL), :data:`ROUND` rectangles at a time so their temporaries stay
-        small. The tiles above the cell levels read the pool, so :meth:`tile` builds those here."""
+        :func:`cell_tiles`): on the workers of :attr:`client` (``dask.distributed``) if there is one,
+        else on this process's threads (numba's thread count; the kernels release the GIL). Their pool
+        slots are claimed first, so each thread also copies its tiles into the pool (the first touches
+        of fresh pages run in parallel too); the tables point at them once all are in. The tiles above
+        the cell levels read the pool, so :meth:`tile` builds those here."""
         todo = rectangles([key for key in keys if key[0] < ss.CELL_LEVELS and key not in self._tiles], RECTANGLE)
         if not todo:
             return
+        keys_of = [[(k, tv, tu) for tv in range(tv0, tv1 + 1) for tu in range(tu0, tu1 + 1)] for k, tv0, tv1, tu0, tu1 in todo]
+        claims: list[list[tuple[np.ndarray, ...]]] = []
         args = [(self.squared, self.shape, *rect, self._side(rect[0])) for rect in todo]
-        if self.client is not None:
-            if self._scattered is None or self._scattered[0] is not self.client:
-                self._scattered = (self.client, self.client.scatter(self.source, broadcast=True))
-            futures = self.client.map(cell_tiles, [self._scattered[1]] * len(todo), *zip(*args, strict=True), pure=False)
-            built = zip(todo, self.client.gather(futures), strict=True)
-        elif nb.get_num_threads() > 1 and len(todo) > 1:
-            pool = _tile_threads(nb.get_num_threads())
-            built = ((rect, tiles) for lo in range(0, len(todo), ROUND) for rect, tiles in zip(
-                todo[lo : lo + ROUND], pool.map(lambda a: cell_tiles(self.source, *a), args[lo : lo + ROUND]), strict=True))
-        else:
-            built = ((rect, cell_tiles(self.source, *a)) for rect, a in zip(todo, args, strict=True))
-        for (k, tv0, tv1, tu0, tu1), (tiles, cells) in built:
-            self.cells_read += cells
-            keys_of = [(k, tv, tu) for tv in range(tv0, tv1 + 1) for tu in range(tu0, tu1 + 1)]
-            for key, padded in zip(keys_of, tiles, strict=True):
-                self._insert(*key, padded)
+
+        def store(tiles: list[np.ndarray], claim: list[tuple[np.ndarray, ...]]) -> None:
+            for padded, (slots, _, keep_v, keep_u) in zip(tiles, claim, strict=True):
+                _store_blocks(self.pool, slots, padded, keep_v, keep_u)
+
+        def build(a: tuple, claim: list[tuple[np.ndarray, ...]]) -> int:
+            tiles, cells = cell_tiles(self.source, *a)
+            store(tiles, claim)
+            return cells
+
+        try:
+            claims.extend([self._claim(*key) for key in rect] for rect in keys_of)
+            if self.client is not None:
+                if self._scattered is None or self._scattered[0] is not self.client:
+                    self._scattered = (self.client, self.client.scatter(self.source, broadcast=True))
+                futures = self.client.map(cell_tiles, [self._scattered[1]] * len(todo), *zip(*args, strict=True), pure=False)
+                cells = []
+                for (tiles, n), claim in zip(self.client.gather(futures), claims, strict=True):
+                    store(tiles, claim)
+                    cells.append(n)
+            elif nb.get_num_threads() > 1 and len(todo) > 1:
+                cells = list(_tile_threads(nb.get_num_threads()).map(build, args, claims))
+            else:
+                cells = [build(a, claim) for a, claim in zip(args, claims, strict=True)]
+        except BaseException:
+            self._free.extend(int(slot) for claim in claims for c in claim for slot in c[0])
+            raise
+        self.cells_read += sum(cells)
+        for rect, claim in zip(keys_of, claims, strict=True):
+            for key, c in zip(rect, claim, strict=True):
+                self._register(key, c)
 
     def _make_room(self, n: int) -> None:
         """Free ``n`` slots, evicting the least recently used tiles that are not pinned (and a
@@ -675,12 +702,13 @@ def home_blocks(u, v, reach, h: int, w: int, b: int, pad: int):
 
 
 def huge_zeros(shape: tuple[int, ...], dtype) -> np.ndarray:
-    """A zeroed array on anonymous memory advised for transparent huge pages (Linux ``madvise`` mode): where
-    the kernel grants them, a pool filled block by block faults 2 MiB pages, not 4 KiB ones (first
-    touches are much of a cold tile's insertion). The bench VM grants none; its anonymous mapping still
-    faulted 1.8x faster than ``np.zeros`` (docs/terrace.md, Session 12)."""
+    """A zeroed array on private anonymous memory advised for transparent huge pages (Linux ``madvise``
+    mode): a pool filled block by block then faults 2 MiB pages, not 4 KiB ones (first touches are much
+    of a cold tile's insertion; 1 GiB touched again: 0.10 s against 0.58 s on the bench VM). Private,
+    because a shared anonymous mapping is shmem, whose huge pages are off by default."""
     count = int(np.prod(shape))
-    buf = mmap.mmap(-1, max(count * np.dtype(dtype).itemsize, 1))
+    size = max(count * np.dtype(dtype).itemsize, 1)
+    buf = mmap.mmap(-1, size, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS) if hasattr(mmap, "MAP_PRIVATE") else mmap.mmap(-1, size)
     if hasattr(mmap, "MADV_HUGEPAGE"):
         buf.madvise(mmap.MADV_HUGEPAGE)
     return np.frombuffer(buf, dtype, count=count).reshape(shape)
@@ -829,6 +857,23 @@ def _plan(uc, vc, cuu, cuv, cvv, idx, geometry, widen, fine2):
                     out[n_out] = (np.int64(k) << 40) | (np.int64(tv) << 20) | tu
                     n_out += 1
     return out[:n_out]
+
+
+@nb.njit(cache=True, nogil=True)
+def _store_blocks(pool, slots, padded, keep_v, keep_u):
+    """Blocks (a, b), a in ``keep_v``, b in ``keep_u`` (rows first), of a tile's ``padded`` coefficients
+    (:func:`_padded_coefficients`: each block its :data:`~tracker.integrate.scalespace.TILE` nodes and
+    the 3-node apron) into pool rows ``slots``, in that order."""
+    t = _T
+    width = t + 3
+    n = 0
+    for a in keep_v:
+        for b in keep_u:
+            row = pool[slots[n]]
+            for r in range(width):
+                for c in range(width):
+                    row[r * width + c] = padded[a * t + r, b * t + c]
+            n += 1
 
 
 @nb.njit(cache=True)

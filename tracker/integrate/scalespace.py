@@ -310,12 +310,21 @@ def _fused_weights(first: int, last: int, n_nodes: int, origin: float, h: float,
     # differ by at most ceil((taps - 1) h) + 1 cells
     width = min(int(np.ceil((taps - 1) * h)) + 1 + bw.shape[1], n_cells)
     start = np.minimum(bs[fs - src0], n_cells - width)
-    weights = np.zeros((fs.size, width))
-    rows = np.arange(fs.size)[:, None]
-    for t in range(taps):
-        m = fs - src0 + t
-        weights[rows, (bs[m] - start)[:, None] + np.arange(bw.shape[1])] += fw[:, t, None] * bw[m]
-    return start, weights
+    return start, _fold_taps(fs - src0, fw, bs, bw, start, width)
+
+
+@nb.njit(cache=True, nogil=True)
+def _fold_taps(first, fw, bs, bw, start, width: int):
+    """w[j, bs[m] - start[j] + c] += fw[j, t] · bw[m, c] for m = first[j] + t, t in order (the loop of
+    :func:`_fused_weights`; no fast-math, so any caller gets the same numbers)."""
+    weights = np.zeros((first.size, width))
+    for j in range(first.size):
+        for t in range(fw.shape[1]):
+            m = first[j] + t
+            off = bs[m] - start[j]
+            for c in range(bw.shape[1]):
+                weights[j, off + c] += fw[j, t] * bw[m, c]
+    return weights
 
 
 def fused_coefficients(cells, k: int, shape: tuple[int, int], rows: tuple[int, int], cols: tuple[int, int]) -> np.ndarray:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import threading
 import warnings
+from pathlib import Path
 
 import numba as nb
 import numpy as np
@@ -257,7 +258,6 @@ def test_cell_tiles_built_on_threads_are_the_same_tiles(monkeypatch) -> None:
         return build(*args)
 
     monkeypatch.setattr(lazy, "cell_tiles", spy)
-    monkeypatch.setattr(lazy, "ROUND", 3)  # several rounds
     threaded = lazy.LazyPyramid(source, blocks=1, cache_bytes=1 << 24)
     with lazy._threads(2):
         got, counts = threaded.integrate_pixels(*px)
@@ -265,6 +265,36 @@ def test_cell_tiles_built_on_threads_are_the_same_tiles(monkeypatch) -> None:
     np.testing.assert_array_equal(counts, want_counts)
     assert threaded.tiles_built == serial.tiles_built and threaded.cells_read == serial.cells_read
     assert sum(name.startswith("lazy-tiles") for name in names) > 3
+
+
+def test_a_failed_threaded_build_leaves_the_pool_as_it_was() -> None:
+    """A source read that fails on a tile thread: the error reaches the caller, the slots claimed for
+    the batch are free again, no tile half-written is in the tables, and the next batch builds them."""
+
+    class Flaky:
+        def __init__(self, inner, fail: int) -> None:
+            self.inner, self.shape, self.fail, self.calls = inner, inner.shape, fail, 0
+
+        def __getitem__(self, key):
+            self.calls += 1
+            if self.calls == self.fail:
+                self.failed_on = threading.current_thread().name
+                raise OSError("read failed")
+            return self.inner[key]
+
+    inner = Mosaic(rough_field(seed=4, shape=(64, 80)), (5, 4))
+    px = pixel_batch(inner.shape, 2000, seed=8, smallest=1.5, largest=20.0)
+    want, _ = lazy.LazyPyramid(inner, blocks=1, cache_bytes=1 << 24).integrate_pixels(*px)
+    flaky = Flaky(inner, fail=3)
+    pyr = lazy.LazyPyramid(flaky, blocks=1, cache_bytes=1 << 24)
+    free = len(pyr._free)
+    with lazy._threads(2), pytest.raises(OSError, match="read failed"):
+        pyr.integrate_pixels(*px)
+    assert flaky.failed_on.startswith("lazy-tiles")
+    assert len(pyr._free) == free and not pyr._tiles and (pyr.slots == lazy.MISSING).all()
+    with lazy._threads(2):
+        got, _ = pyr.integrate_pixels(*px)
+    np.testing.assert_array_equal(got, want)
 
 
 def test_tile_client_reaches_the_priors_lazy_pyramids(monkeypatch) -> None:
@@ -386,6 +416,19 @@ def test_huge_zeros_is_a_writable_zeroed_array_of_its_shape() -> None:
     a[2, 4] = 7.0
     assert a.sum() == 7.0
     assert lazy.huge_zeros((0, 4), np.float64).shape == (0, 4)
+
+
+@pytest.mark.skipif(not Path("/proc/self/maps").exists(), reason="needs Linux's /proc/self/maps")
+def test_huge_zeros_is_private_memory() -> None:
+    """Private, not shared, anonymous memory: shmem gets no transparent huge pages by default."""
+    a = lazy.huge_zeros((1024, 1024), np.float32)
+    address = a.__array_interface__["data"][0]
+    for line in Path("/proc/self/maps").read_text().splitlines():
+        lo, hi = (int(x, 16) for x in line.split()[0].split("-"))
+        if lo <= address < hi:
+            assert line.split()[1] == "rw-p", line
+            return
+    pytest.fail("the array's mapping is not in /proc/self/maps")
 
 
 def _home_blocks_numpy(u, v, reach, h, w, b, pad):
