@@ -134,6 +134,22 @@ def test_fused_weights_are_the_prefilter_times_the_cell_masses(k, n_cells, lo, s
     np.testing.assert_allclose(_dense(start, weights, n_cells), expected, rtol=0, atol=1e-15)
 
 
+@settings(max_examples=40, deadline=None)
+@given(h=st.integers(1, 70), w=st.integers(1, 70), bu=st.integers(1, 9), bv=st.integers(1, 9), nu=st.integers(1, 60),
+       nv=st.integers(1, 60), seed=st.integers(0, 2**16))
+def test_separable_is_the_dense_double_sum(h, w, bu, bv, nu, nv, seed) -> None:
+    """The banded two-pass kernel against Wv @ values @ Wu.T with the bands as dense matrices, on any
+    shapes (bands as wide as the axis, one node, more nodes than cells)."""
+    rng = np.random.default_rng(seed)
+    bu, bv = min(bu, w), min(bv, h)
+    values = rng.normal(size=(h, w))
+    su, sv = rng.integers(0, w - bu + 1, nu), rng.integers(0, h - bv + 1, nv)
+    wu, wv = rng.normal(size=(nu, bu)), rng.normal(size=(nv, bv))
+    got = scalespace._separable(values, su, wu, sv, wv)
+    want = _dense(sv, wv, h) @ values @ _dense(su, wu, w).T
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12 * np.abs(values).sum())
+
+
 @settings(max_examples=30, deadline=None)
 @given(k=st.integers(0, scalespace.FUSED_LEVELS - 1), n_cells=st.integers(1, 400), lo=st.floats(0, 1), span=st.floats(0, 1))
 def test_fold_taps_is_the_numpy_formula_bit_for_bit(k, n_cells, lo, span) -> None:
