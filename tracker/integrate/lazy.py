@@ -545,19 +545,37 @@ class LazyPyramid:
             # empty slots first, then the least recently used of those this run does not hold
             free = np.flatnonzero(self._pad_used < self._pad_clock)
             free = free[np.lexsort((self._pad_used[free], self._pad_key[free] >= 0))][: miss.size]
+            fills = []
             for i, slot in zip(miss.tolist(), free.tolist(), strict=True):
-                key = int(blocks[lo + i])
-                if self._pad_key[slot] >= 0:
+                if self._pad_key[slot] >= 0:  # its block is overwritten: no longer held
                     self._pad_slot_of[self._pad_key[slot]] = -1
-                br, bc = divmod(key, across)
+                    self._pad_key[slot] = -1
+                br, bc = divmod(int(blocks[lo + i]), across)
                 r0, r1 = max(br * b - PAD, 0), min(br * b + b + PAD, h)
                 c0, c1 = max(bc * b - PAD, 0), min(bc * b + b + PAD, w)
-                self._pads[slot * side : slot * side + r1 - r0, : c1 - c0] = self._cells(r0, r1, c0, c1)
+                fills.append((self._pads[slot * side : slot * side + r1 - r0, : c1 - c0], r0, r1, c0, c1))
                 self._pad_frames[slot] = (r0 - slot * side, c0, h, w)
-                self._pad_key[slot], self._pad_slot_of[key], self._pad_used[slot] = key, slot, self._pad_clock
                 slots[i] = slot
+            self._fill(fills)
+            for i in miss.tolist():  # held only once filled, so a failed read leaves no block half-made
+                slot, key = slots[i], int(blocks[lo + i])
+                self._pad_key[slot], self._pad_slot_of[key], self._pad_used[slot] = key, slot, self._pad_clock
             members = order[first[lo] : first[hi]]
             yield self._pads, self._pad_frames, idx[members], slots[which[members] - lo]
+
+    def _fill(self, fills: list[tuple[np.ndarray, int, int, int, int]]) -> None:
+        """Each (view, r0, r1, c0, c1): the values (r or r²) of cells [r0, r1) x [c0, c1) read straight
+        into ``view`` (a padded block's slot), on the tile threads when there are several (the reads
+        and the first touches of the slots' pages then use both cores)."""
+        def fill(job: tuple[np.ndarray, int, int, int, int]) -> None:
+            view, r0, r1, c0, c1 = job
+            view[...] = self.source[r0:r1, c0:c1]
+            if self.squared:
+                np.multiply(view, view, out=view)
+
+        threads = nb.get_num_threads()
+        list(_tile_threads(threads).map(fill, fills) if threads > 1 and len(fills) > 1 else map(fill, fills))  # raises the first error
+        self.cells_read += sum(view.size for view, *_ in fills)
 
     def _fine_windows(self, idx: np.ndarray, uc, vc, reach: np.ndarray) -> Iterator[tuple[np.ndarray, ...]]:
         """The Gaussians ``idx`` (finer than level 0) grouped by block of :data:`FINE_BLOCK` cells of

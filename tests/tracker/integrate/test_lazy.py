@@ -168,6 +168,39 @@ def test_without_a_field_fine_gaussians_read_windows_of_the_source(squared, cach
         np.testing.assert_array_equal(got, want[lo : lo + 1000])
 
 
+def test_a_failed_read_of_a_padded_block_holds_no_block() -> None:
+    """A source read that fails while the padded blocks of a run are filled: the error reaches the
+    caller, no slot claims the block it was filling, and the same batch again has the whole field's
+    numbers."""
+
+    class Flaky:
+        def __init__(self, inner) -> None:
+            self.inner, self.shape, self.failed = inner, inner.shape, False
+
+        def __getitem__(self, key):
+            window = (key[0].start, key[0].stop, key[1].start, key[1].stop)
+            if not self.failed and window == (0, lazy.CELL_BLOCK + lazy.PAD, 0, lazy.CELL_BLOCK + lazy.PAD):
+                self.failed = True
+                raise OSError("read failed")
+            return self.inner[key]
+
+    inner = Mosaic(rough_field(seed=1, shape=(61, 70)), (7, 6))
+    field = inner[0 : inner.shape[0], 0 : inner.shape[1]]
+    px = pixel_batch(field.shape, 3000, seed=3, smallest=0.1, largest=3.0)
+    want, _ = whole_integrals(field, px)
+    source = Flaky(inner)
+    pyr = lazy.LazyPyramid(source, cache_bytes=1 << 24)
+    with pytest.raises(OSError, match="read failed") as failure:
+        pyr.integrate_pixels(*px)
+    assert source.failed and "_fill" in [entry.name for entry in failure.traceback]
+    held = np.flatnonzero(pyr._pad_key >= 0)
+    assert (pyr._pad_slot_of[pyr._pad_key[held]] == held).all()
+    assert ((pyr._pad_slot_of < 0) | (pyr._pad_key[pyr._pad_slot_of.clip(0)] == np.arange(pyr._pad_slot_of.size))).all()
+    assert pyr._pad_slot_of[0] == -1  # the block whose read failed
+    got, _ = pyr.integrate_pixels(*px)
+    np.testing.assert_array_equal(got, want)
+
+
 def test_a_cache_too_small_for_one_gaussian_says_so() -> None:
     field = rough_field(seed=1, shape=(300, 300))
     px = pixel_batch(field.shape, 1, seed=1, smallest=60.0, largest=60.0)
