@@ -342,7 +342,10 @@ class LazyPyramid:
             return cells
 
         try:
-            claims.extend([self._claim(*key) for key in rect] for rect in keys_of)
+            for rect in keys_of:  # one claim at a time, so a MemoryError part-way frees those made
+                claims.append([])
+                for key in rect:
+                    claims[-1].append(self._claim(*key))
             if self.client is not None:
                 if self._scattered is None or self._scattered[0] is not self.client:
                     self._scattered = (self.client, self.client.scatter(self.source, broadcast=True))

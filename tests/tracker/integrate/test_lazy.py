@@ -208,6 +208,19 @@ def test_a_cache_too_small_for_one_gaussian_says_so() -> None:
         lazy.LazyPyramid(field, cache_bytes=1, blocks=1).integrate_pixels(*px)
 
 
+def test_cell_tiles_past_the_pool_free_the_slots_they_claimed() -> None:
+    """More missing cell-level tiles than the pool holds: MemoryError part-way through claiming their
+    slots, with every slot free again and no tile in the tables."""
+    pyr = lazy.LazyPyramid(rough_field(seed=1, shape=(300, 300)), cache_bytes=1 << 16, blocks=1)
+    pyr._grow(1.0)
+    free = len(pyr._free)
+    keys = [(0, tv, tu) for tv in range(5) for tu in range(5)]
+    assert len(keys) > pyr.n_slots
+    with pytest.raises(MemoryError, match="cannot hold the tiles one batch needs"):
+        pyr._build_cell_tiles(keys)
+    assert len(pyr._free) == free and not pyr._tiles and (pyr.slots == lazy.MISSING).all()
+
+
 def test_priors_above_the_size_limit_get_the_lazy_pyramid(monkeypatch) -> None:
     """integrate() on a grid above MAX_CELLS: the lazy pyramid, no warning, the whole pyramid's integrals."""
     means, covs = random_gaussians(GRID, 200, seed=4)
