@@ -288,8 +288,8 @@ class LazyPyramid:
     def _insert(self, k: int, tv: int, tu: int, padded: np.ndarray) -> None:
         """Tile (tv, tu) of level k (its coefficients with their aprons, :func:`_padded_coefficients`) into
         free blocks of the pool."""
-        claim = self._claim(k, tv, tu)
-        _store_blocks(self.pool, claim[0], padded, claim[2], claim[3])
+        claim = slots, _, keep_v, keep_u = self._claim(k, tv, tu)
+        _store_blocks(self.pool, slots, padded, keep_v, keep_u)
         self._register((k, tv, tu), claim)
 
     def _claim(self, k: int, tv: int, tu: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -572,9 +572,7 @@ class LazyPyramid:
         and the first touches of the slots' pages then use both cores)."""
         def fill(job: tuple[np.ndarray, int, int, int, int]) -> None:
             view, r0, r1, c0, c1 = job
-            view[...] = self.source[r0:r1, c0:c1]
-            if self.squared:
-                np.multiply(view, view, out=view)
+            read_cells(self.source, self.squared, r0, r1, c0, c1, out=view)
 
         threads = nb.get_num_threads()
         list(_tile_threads(threads).map(fill, fills) if threads > 1 and len(fills) > 1 else map(fill, fills))  # raises the first error
@@ -735,10 +733,15 @@ def huge_zeros(shape: tuple[int, ...], dtype) -> np.ndarray:
     return np.frombuffer(buf, dtype, count=count).reshape(shape)
 
 
-def read_cells(source: CellSource, squared: bool, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
-    """The float64 values (r, or r² when ``squared``) of cells [r0, r1) x [c0, c1) of ``source``."""
-    values = np.ascontiguousarray(source[r0:r1, c0:c1], dtype=np.float64)
-    return values * values if squared else values
+def read_cells(source: CellSource, squared: bool, r0: int, r1: int, c0: int, c1: int, out: np.ndarray | None = None
+               ) -> np.ndarray:
+    """The float64 values (r, or r² when ``squared``) of cells [r0, r1) x [c0, c1) of ``source``; read
+    straight into ``out`` (float64, that shape) if given."""
+    if out is None:
+        values = np.ascontiguousarray(source[r0:r1, c0:c1], dtype=np.float64)
+        return values * values if squared else values
+    out[...] = source[r0:r1, c0:c1]
+    return np.multiply(out, out, out=out) if squared else out
 
 
 def _prefiltered(values, nu: int, nv: int):

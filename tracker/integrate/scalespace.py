@@ -212,7 +212,9 @@ def _gauss_weights(nodes: np.ndarray, origin: float, n_src: int, d: float, h: fl
 
 @nb.njit(cache=True, parallel=True, nogil=True, error_model="numpy")
 def _transpose(a):
-    """``a.T`` as a new C-ordered array, copied in 32 x 32 blocks (each block's reads and writes stay in cache)."""
+    """``a.T`` as a new C-ordered array, copied in 32 x 32 blocks (each block's reads and writes stay in
+    cache) on numba's threads: a whole level's 5,000² on two takes 0.20 s, numba's serial
+    ``np.ascontiguousarray(a.T)`` 0.27 s."""
     h, w = a.shape
     out = np.empty((w, h), a.dtype)
     for ib in nb.prange((h + 31) // 32):
