@@ -19,7 +19,7 @@ coefficients, and the integrals from them, are the whole pyramid's bit for bit
 The dependency cone: a tile of a cell level needs only cells (its extent plus 14 h_k + 8 s_k a side);
 a tile above the cell levels needs the level below on its extent plus ~34 nodes a side, down to the
 16-cell level. Tiles hold 256 nodes a side up to level 3 and fewer above (``blocks >> (k // 4)``
-kernel blocks, at least one), so a tile covers 128-215 cells a side up to s = 16 cells and the
+kernel blocks, at least one), so a tile covers 215-362 cells a side up to s = 16 cells and the
 cells a cold tile reads stay near the area a stream touches. Cost is per tile touched, not per
 cell of the prior. Units as in
 :mod:`tracker.integrate.scalespace` (pixels; values in the prior's units).
@@ -56,7 +56,7 @@ BLOCKS = 8
 """Kernel blocks (:data:`~tracker.integrate.scalespace.TILE` nodes) per tile side at levels 0-3; levels
 4-7 have half as many, 8-11 a quarter, and so on down to one (see :meth:`LazyPyramid.level_blocks`)."""
 SIDE = BLOCKS * ss.TILE
-"""Nodes per tile side at level 0 (256: 128 cells, 1.3 MB of its float64 temporaries)."""
+"""Nodes per tile side at level 0 (256: 215 cells, 1.3 MB of its float64 temporaries)."""
 CACHE_BYTES = 1 << 30
 """Default size of the block pool, bytes (3,400 tiles of 256² nodes)."""
 _T = ss.TILE

@@ -44,9 +44,14 @@ from tracker.integrate.tiny import TINY
 FAST = {"nsz", "arcp", "contract", "afn", "reassoc"}
 """LLVM fast-math flags for the kernels: fused multiply-adds and reassociation (~30 % faster),
 but not 'no NaNs/infinities' (the checks in :func:`_one` and :func:`_phi` must stay)."""
-S0 = 1.0
-"""Finest stored smoothing scale, cells. Gaussians with a smaller σ are smoothed at their own
-smaller σ on the fly, exactly, from the cells near each point (:func:`_window`)."""
+S0 = 2.0**0.75
+"""Finest stored smoothing scale, cells (1.68). Gaussians with a smaller σ are smoothed at their own
+smaller σ on the fly, exactly, from the cells near each point (:func:`_window`). Why not 1 cell, as
+before session 22: levels at s = 1, 1.19 and 1.41 cells hold 8.8 of the 13.7 nodes per cell of all
+levels (4, 2.8 and 2 nodes per cell), so they were 64 % of a pyramid's memory and of its build,
+while a Gaussian that would read them costs 1.5-2x more from the cells when its eccentricity is
+below ~1.5 and 4x more at 2:1. They paid for themselves only on priors that serve more than
+~0.1-0.7 such integrals per cell (docs/terrace.md, "Session 22")."""
 RATIO = 2.0**0.25
 """Ratio of consecutive scales."""
 GAMMA = 2.0
@@ -62,7 +67,7 @@ the block arithmetic to shifts."""
 BLOCK = (TILE + 3) ** 2
 """Floats per stored block (a TILE x TILE node block with its apron)."""
 MAX_CELLS = 25_000_000
-"""Largest grid (cells) :func:`tracker.integrate.integrate` builds a whole pyramid for (~3.5 GiB peak
+"""Largest grid (cells) :func:`tracker.integrate.integrate` builds a whole pyramid for (~1.3 GiB peak
 at this size, see :func:`pyramid_bytes`); larger priors get a :class:`tracker.integrate.lazy.LazyPyramid`
 (the same lattices, built per tile where Gaussians fall, in a bounded cache)."""
 
@@ -285,8 +290,8 @@ z = √3 - 2, truncated at |m| = FIR; the lattice is zero beyond its ends). The 
 coefficient by at most ~4.7·|z|^15 = 1e-8 of the values around it, below float32 rounding. A
 finite filter makes a coefficient depend on its 2·FIR + 1 neighbours only: a lazy tile computes the
 same numbers as the whole lattice, and needs FIR nodes of values beyond it, not whole rows."""
-CELL_LEVELS = 17
-"""Levels k < CELL_LEVELS (s_k up to 16 cells) are exact cell sums Σ r·ΔΦ_u·ΔΦ_v at their nodes; higher
+CELL_LEVELS = int(round(4 * np.log2(16.0 / S0))) + 1
+"""Levels k < CELL_LEVELS (s_k up to 16 cells: 14 levels) are exact cell sums Σ r·ΔΦ_u·ΔΦ_v at their nodes; higher
 levels come from the level below by the trapezoid rule. Cell sums make a level independent of the
 levels below (a lazy tile of it reads cells only, within 8 s_k + 1 of its nodes)."""
 
@@ -303,8 +308,8 @@ def _fir_weights(first: int, last: int, n: int) -> tuple[np.ndarray, np.ndarray]
     return start, _TAPS[np.where((gap >= 0) & (gap <= 2 * FIR), gap, 2 * FIR + 1)]
 
 
-FUSED_LEVELS = 4
-"""Levels k < FUSED_LEVELS (s_k < 2 cells, more than one node per cell) get their coefficients from the
+FUSED_LEVELS = int(np.ceil(4 * np.log2(2.0 / S0) - 1e-9))
+"""Levels k < FUSED_LEVELS (s_k < 2 cells, more than one node per cell: the finest level alone) get their coefficients from the
 cells in one banded pass with the prefilter folded into the cell weights (:func:`_fused_weights`): per
 output node ~(8 s + 14 h) cells a side instead of 8 s cells and then 2·FIR + 1 nodes, 1.3-1.7x fewer
 multiply-adds there; from s = 2 cells up (a node per cell or fewer) the two passes cost less."""

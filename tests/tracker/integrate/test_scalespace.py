@@ -251,8 +251,8 @@ def test_sub_cell_gaussians_match_the_closed_form(su, ratio, uc, vc, transpose) 
 
 
 def test_cost_is_the_same_at_every_spread() -> None:
-    """The same shape at spreads from 1 to ~10,000 cells costs the same number of look-ups."""
-    scale = np.array([1.3 * scalespace.RATIO**k for k in range(0, 56, 4)])
+    """The same shape at spreads from 2 to ~10,000 cells costs the same number of look-ups."""
+    scale = np.array([1.3 * scalespace.S0 * scalespace.RATIO**k for k in range(0, 52, 4)])
     angle = 0.6
     c, s = np.cos(angle), np.sin(angle)
     major, minor = 2.2 * scale, scale
