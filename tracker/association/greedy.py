@@ -77,6 +77,7 @@ from tracker.association.walk import (
     grid_gate,
     grid_place,
     half_log_det,
+    least_k,
     link_pairs,
     needed_pairs,
     pair_geometry,
@@ -561,10 +562,10 @@ class Tracker:
             low[: H.n] = np.arange(H.n)
             is_low[: H.n] = True
             return low, is_low, np.inf
-        part = np.argpartition(H.log_c, LOW_C)
-        low[:LOW_C] = part[:LOW_C]
-        is_low[part[:LOW_C]] = True
-        return low, is_low, float(H.log_c[part[LOW_C]])
+        least, floor = least_k(H.log_c, LOW_C)
+        low[: least.size] = least
+        is_low[least] = True
+        return low, is_low, floor
 
     def _cfg(self) -> tuple:
         s_kind, s_param = self.s_model.code

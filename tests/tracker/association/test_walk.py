@@ -19,6 +19,7 @@ from tracker.association.walk import (
     grid_gate,
     grid_place,
     half_log_det,
+    least_k,
     needed_pairs,
     pair_geometry,
     pair_geometry_parallel,
@@ -216,3 +217,16 @@ def test_needed_pairs_and_scores_are_the_numpy_formulas():
         want_s[ok] = log_g[ok] + want_i[ok] - want_c[ok]
         assert np.array_equal(log_i, want_i) and np.array_equal(score, want_s)
     assert n_need == 0  # ln r_max = -30: no bound reaches previouslyUnseen
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.floats(-1e6, 1e6) | st.sampled_from([-np.inf, 0.0, 1.0]), min_size=1, max_size=400), st.data())
+def test_least_k_is_argpartition(values, data) -> None:
+    """The k least (as a multiset) and the least of the rest, against numpy's sort; ties included."""
+    values = np.array(values)
+    k = data.draw(st.integers(1, values.size))
+    idx, floor = least_k(values, k)
+    assert idx.size == k and np.unique(idx).size == k and np.all(np.diff(idx) > 0)
+    ordered = np.sort(values)
+    np.testing.assert_array_equal(np.sort(values[idx]), ordered[:k])
+    assert floor == (ordered[k] if k < values.size else np.inf)
