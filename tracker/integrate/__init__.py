@@ -149,12 +149,11 @@ def _integrate(prior, means, covs, squared, method, n_terraces, n_strips, mass, 
         raise ValueError(f"integrate: scheme must be 'adaptive' or 'paper', got {scheme!r}")
     if method not in METHODS:
         raise ValueError(f"integrate: method must be one of {METHODS}, got {method!r}")
-    if (
-        method == "scalespace"
-        and 0 < means.shape[0] < scalespace.SMALL_BATCH
-        and prior.grid.height * prior.grid.width <= scalespace.MAX_CELLS
-    ):
-        small = scalespace.integrate_small(prior, means, covs, squared, NEAR_RHO, NEAR_SPREAD)
+    if method == "scalespace" and 0 < means.shape[0] < scalespace.SMALL_BATCH:
+        if prior.grid.height * prior.grid.width <= scalespace.MAX_CELLS:
+            small = scalespace.integrate_small(prior, means, covs, squared, NEAR_RHO, NEAR_SPREAD)
+        else:
+            small = lazy_pyramid(prior, squared).integrate_small(prior, means, covs, NEAR_RHO, NEAR_SPREAD)
         if small is not None:  # the same values as below, in one compiled call
             return small
     uc, vc, cuu, cuv, cvv = pixel_gaussians(prior, means, covs)

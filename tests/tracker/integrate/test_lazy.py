@@ -17,7 +17,16 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from tests.tracker.integrate.test_terraces import GRID, ROUGH, random_gaussians, rough_field
+from pipeline.prior import TerrainPrior
+from tests.tracker.integrate.test_terraces import (
+    CELL,
+    GRID,
+    ROUGH,
+    H,
+    W,
+    random_gaussians,
+    rough_field,
+)
 from tracker.integrate import integrate, lazy, scalespace
 from tracker.integrate.terraces import pixel_gaussians
 
@@ -65,6 +74,7 @@ class Mosaic:
     def __init__(self, tile: np.ndarray, reps: tuple[int, int]) -> None:
         self.tile = tile
         self.shape = (tile.shape[0] * reps[0], tile.shape[1] * reps[1])
+        self.dtype = tile.dtype
 
     def __getitem__(self, key: tuple[slice, slice]) -> np.ndarray:
         rows, cols = (np.arange(*k.indices(n)) for k, n in zip(key, self.shape, strict=True))
@@ -235,6 +245,67 @@ def test_priors_above_the_size_limit_get_the_lazy_pyramid(monkeypatch) -> None:
     np.testing.assert_array_equal(got, want)
     np.testing.assert_array_equal(got2, want2)
     assert pixel_gaussians(ROUGH, means, covs)[0].shape == (200,)
+
+
+def thin_gaussians(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` Gaussians over GRID (metres) with σ 0.06-1.5 cells a side, any angle: finer than level 0,
+    as most tracker reports."""
+    rng = np.random.default_rng(seed)
+    sd = np.exp(rng.uniform(np.log(0.06), np.log(1.5), (n, 2))) * CELL
+    ang = rng.uniform(0.0, np.pi, n)
+    c, s = np.cos(ang), np.sin(ang)
+    covs = np.empty((n, 2, 2))
+    covs[:, 0, 0] = c * c * sd[:, 0] ** 2 + s * s * sd[:, 1] ** 2
+    covs[:, 1, 1] = s * s * sd[:, 0] ** 2 + c * c * sd[:, 1] ** 2
+    covs[:, 0, 1] = covs[:, 1, 0] = c * s * (sd[:, 0] ** 2 - sd[:, 1] ** 2)
+    means = np.column_stack([rng.uniform(0, W * CELL, n) + GRID.transform.c, GRID.transform.f - rng.uniform(0, H * CELL, n)])
+    return means, covs
+
+
+@pytest.mark.parametrize("windowed", [False, True])
+def test_small_batches_on_the_lazy_pyramid_equal_the_general_path(windowed, monkeypatch) -> None:
+    """LazyPyramid.integrate_small (batches under SMALL_BATCH on a prior above MAX_CELLS) gives the
+    general path's values bit for bit, which are the whole in-memory pyramid's, from the field or (a
+    windowed density) from the padded blocks held; it leaves to the general path every batch with a
+    Gaussian it does not take: tiny, off the grid, coarser than level 0, before any level is made, or
+    (windowed) reading a padded block not held."""
+    field = rough_field(seed=4)
+    means, covs = thin_gaussians(300, seed=6)
+    r_means, r_covs = random_gaussians(GRID, 100, seed=5, max_sigma=30.0)
+    means, covs = np.concatenate([means, r_means]), np.concatenate([covs, r_covs])
+    in_memory = TerrainPrior.from_array(field, GRID)
+    want = {sq: integrate(in_memory, means, covs, sq) for sq in (False, True)}  # the whole pyramid
+    monkeypatch.setattr(scalespace, "MAX_CELLS", H * W - 1)
+    monkeypatch.setattr(lazy, "CELL_BLOCK", 32)  # 3 x 4 padded blocks
+    monkeypatch.setattr(lazy, "PAD", 8)
+    prior = TerrainPrior(GRID, Mosaic(in_memory.density, (1, 1)), None, None) if windowed else TerrainPrior.from_array(field, GRID)
+    for squared in (False, True):
+        pyr = lazy.lazy_pyramid(prior, squared)
+        assert pyr.integrate_small(prior, means[:5], covs[:5], 0.5, 4.0) is None  # no level made yet
+        if windowed:
+            # one corner visited: the padded blocks elsewhere are not held
+            corner = np.flatnonzero(((means - [GRID.transform.c, GRID.transform.f]) * [1, -1] < 8 * CELL).all(axis=1))
+            assert corner.size >= 1
+            integrate(prior, np.repeat(means[corner], 300, axis=0), np.repeat(covs[corner], 300, axis=0), squared)
+            far = np.flatnonzero(((means - [GRID.transform.c, GRID.transform.f]) * [1, -1] > 64 * CELL).all(axis=1))[:1]
+            assert far.size == 1 and pyr.integrate_small(prior, means[far], covs[far], 0.5, 4.0) is None
+        got = integrate(prior, means, covs, squared)  # >= SMALL_BATCH: the general path
+        np.testing.assert_array_equal(got, want[squared])
+        if windowed:  # held now
+            np.testing.assert_array_equal(pyr.integrate_small(prior, means[far], covs[far], 0.5, 4.0), want[squared][far])
+        taken = 0
+        for i in range(0, 300, 7):  # the thin ones, seven at a time
+            part = pyr.integrate_small(prior, means[i : i + 7], covs[i : i + 7], 0.5, 4.0)
+            if part is not None:
+                taken += 1
+                np.testing.assert_array_equal(part, want[squared][i : i + 7])
+            np.testing.assert_array_equal(integrate(prior, means[i : i + 7], covs[i : i + 7], squared), want[squared][i : i + 7])
+        assert taken >= 20
+        tiny = np.diag([(0.01 * CELL) ** 2, (0.02 * CELL) ** 2])[None]
+        off = means[:1] + np.array([[-10 * W * CELL, 0.0]])
+        coarse = np.diag([(3.0 * CELL) ** 2, (2.5 * CELL) ** 2])[None]
+        for m, cv in ((means[:1], tiny), (off, covs[:1]), (means[:1], coarse)):
+            assert pyr.integrate_small(prior, np.concatenate([means[1:4], m]), np.concatenate([covs[1:4], cv]), 0.5, 4.0) is None
 
 
 @pytest.mark.parametrize("sigma", [2.0, 4.0, 8.0, 16.0])
