@@ -245,8 +245,11 @@ def track_mosaic(n: int, n_targets: int, n_reports: int, squares: int) -> dict:
     pyr = lazy.lazy_pyramid(big, False)
     built, read = pyr.tiles_built, pyr.cells_read
     again = _tt(big, spread)
+    # The baseline is the better of a run before and one after the big prior's: the loaded machine's
+    # spikes then lower the ratios, never raise them.
+    after = _tt(small, reports)
     return {"n": n, "small_cells": cells, "n_targets": n_targets, "n_reports": n_reports, "squares": squares, "square_km": side * 0.04,
-            "small": base, "small_cold": small_cold, "cold": cold, "again": again, "tiles_built": built, "cells_read": read,
+            "small": max(base, after, key=lambda r: r["per_s"]), "small_runs_per_s": [base["per_s"], after["per_s"]], "small_cold": small_cold, "cold": cold, "again": again, "tiles_built": built, "cells_read": read,
             "tiles_rebuilt_again": pyr.tiles_built - built, "tables_made": big._tables is not None,
             "peak_rss_gib": peak_gib(), "load_average": list(os.getloadavg())}
 
@@ -271,7 +274,7 @@ def mosaic_rows(quick: bool) -> tuple[dict, list[dict]]:
         r = out[k]
         rows.append({"what": f"{what}, {label}",
                      "value": f"{r['integrals']:,} integrals in {r['integral_s']:.1f} s = {r['per_s']:,.0f}/s = {r['ratio']:.2f}x TT's on "
-                              f"the {out['small_cells']:,}² prior in memory ({base:,.0f}/s, same process); TT {r['wall_s']:.1f} s wall "
+                              f"the {out['small_cells']:,}² prior in memory ({base:,.0f}/s, the better of a run before and after, same process); TT {r['wall_s']:.1f} s wall "
                               f"(small prior {out['small']['wall_s']:.1f} s){cold_note if k == 'cold' else ''}; {out['tiles_built']:,} tiles, "
                               f"{out['cells_read'] / 1e6:,.0f} M cells read; {r['widened']:,} widened gates; "
                               f"{out['peak_rss_gib']:.2f} GiB peak",
