@@ -26,7 +26,7 @@ from tracker.study.projections import predicted_choice
 
 FIGURES = Path(__file__).resolve().parent / "figures"
 GAMMA = gate_threshold(0.99, 2)
-# Calls per setting and round in the moving sweeps (best of them): auto and every candidate alike.
+# Calls per setting and round in the moving sweeps (best of them, one pass over all settings per call): auto and every candidate alike.
 MOVING_INNER = 5
 
 
@@ -108,19 +108,26 @@ def interleaved(fns: dict, rounds: int, per_round: list | None = None,
                 inner: int = 1) -> tuple[dict, dict]:
     """Fastest wall time per callable, timing them round-robin so that load changes on a
     shared machine hit every candidate alike; also the last result of each. Within a round
-    each callable's time is the best of ``inner`` back-to-back calls (one timing of a 30 ms
-    call carries the machine's scatter). Each round's times are appended to ``per_round`` (a
-    dict per round) when given."""
+    each callable's time is the best of ``inner`` calls (one timing of a 30 ms call carries the
+    machine's scatter), taken in ``inner`` passes over all the callables rather than back to
+    back: this VM's host runs everything up to ~1.3x slower for seconds at a time, and ``inner``
+    back-to-back calls of one setting could all fall in such a spell while another's all miss it.
+    Each pass takes the callables in a new random order, so none always follows the same one (a
+    call after one of the same setting finds its caches warm). Each round's times are appended to
+    ``per_round`` (a dict per round) when given."""
     best = dict.fromkeys(fns, np.inf)
     out = {}
+    keys = list(fns)
+    rng = np.random.default_rng(0)
     for _ in range(rounds):
-        this = {}
-        for key, fn in fns.items():
-            this[key] = np.inf
-            for _ in range(inner):
+        this = dict.fromkeys(fns, np.inf)
+        for _ in range(inner):
+            for i in rng.permutation(len(keys)):
+                key = keys[i]
                 t0 = time.perf_counter()
-                out[key] = fn()
+                out[key] = fns[key]()
                 this[key] = min(this[key], time.perf_counter() - t0)
+        for key in fns:
             best[key] = min(best[key], this[key])
         if per_round is not None:
             per_round.append(this)
