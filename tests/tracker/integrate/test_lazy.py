@@ -26,6 +26,7 @@ from tests.tracker.integrate.test_terraces import (
     W,
     random_gaussians,
     rough_field,
+    thin_gaussians,
 )
 from tracker.integrate import integrate, lazy, scalespace
 from tracker.integrate.terraces import pixel_gaussians
@@ -245,21 +246,6 @@ def test_priors_above_the_size_limit_get_the_lazy_pyramid(monkeypatch) -> None:
     np.testing.assert_array_equal(got, want)
     np.testing.assert_array_equal(got2, want2)
     assert pixel_gaussians(ROUGH, means, covs)[0].shape == (200,)
-
-
-def thin_gaussians(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """``n`` Gaussians over GRID (metres) with σ 0.06-1.5 cells a side, any angle: finer than level 0,
-    as most tracker reports."""
-    rng = np.random.default_rng(seed)
-    sd = np.exp(rng.uniform(np.log(0.06), np.log(1.5), (n, 2))) * CELL
-    ang = rng.uniform(0.0, np.pi, n)
-    c, s = np.cos(ang), np.sin(ang)
-    covs = np.empty((n, 2, 2))
-    covs[:, 0, 0] = c * c * sd[:, 0] ** 2 + s * s * sd[:, 1] ** 2
-    covs[:, 1, 1] = s * s * sd[:, 0] ** 2 + c * c * sd[:, 1] ** 2
-    covs[:, 0, 1] = covs[:, 1, 0] = c * s * (sd[:, 0] ** 2 - sd[:, 1] ** 2)
-    means = np.column_stack([rng.uniform(0, W * CELL, n) + GRID.transform.c, GRID.transform.f - rng.uniform(0, H * CELL, n)])
-    return means, covs
 
 
 @pytest.mark.parametrize("windowed", [False, True])

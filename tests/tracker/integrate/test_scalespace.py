@@ -28,6 +28,7 @@ from tests.tracker.integrate.test_terraces import (
     gaussian,
     random_gaussians,
     rough_field,
+    thin_gaussians,
 )
 from tracker.integrate import integrate, scalespace
 from tracker.integrate.reference import reference_integrate
@@ -283,17 +284,7 @@ def test_small_batches_equal_the_general_path() -> None:
     not built yet) to the general path."""
     prior = TerrainPrior.from_array(rough_field(seed=4), GRID)
     means, covs = random_gaussians(GRID, 300, seed=5, max_sigma=30.0)
-    rng = np.random.default_rng(6)
-    # thin sub-cell Gaussians (smaller σ under one cell, as most tracker reports), rotated
-    n = 200
-    sd = np.exp(rng.uniform(np.log(0.06), np.log(1.5), (n, 2))) * CELL
-    ang = rng.uniform(0.0, np.pi, n)
-    c, s = np.cos(ang), np.sin(ang)
-    thin = np.empty((n, 2, 2))
-    thin[:, 0, 0] = c * c * sd[:, 0] ** 2 + s * s * sd[:, 1] ** 2
-    thin[:, 1, 1] = s * s * sd[:, 0] ** 2 + c * c * sd[:, 1] ** 2
-    thin[:, 0, 1] = thin[:, 1, 0] = c * s * (sd[:, 0] ** 2 - sd[:, 1] ** 2)
-    centre = np.column_stack([rng.uniform(0, W * CELL, n) + GRID.transform.c, GRID.transform.f - rng.uniform(0, H * CELL, n)])
+    centre, thin = thin_gaussians(200, seed=6)  # smaller σ under one cell, as most tracker reports
     means, covs = np.concatenate([means, centre]), np.concatenate([covs, thin])
     assert scalespace.integrate_small(prior, means[:5], covs[:5], False, 0.5, 4.0) is None  # no level built yet
     for squared in (False, True):

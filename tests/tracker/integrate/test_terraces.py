@@ -61,6 +61,21 @@ def gaussian(grid: Grid, sigma_cells: float, ecc: float, angle: float, fu: float
     return np.array([x0 + fu * (x1 - x0), y0 + fv * (y1 - y0)]), cov
 
 
+def thin_gaussians(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` Gaussians over GRID (metres) with σ 0.06-1.5 cells a side, any angle: finer than level 0,
+    as most tracker reports."""
+    rng = np.random.default_rng(seed)
+    sd = np.exp(rng.uniform(np.log(0.06), np.log(1.5), (n, 2))) * CELL
+    ang = rng.uniform(0.0, np.pi, n)
+    c, s = np.cos(ang), np.sin(ang)
+    covs = np.empty((n, 2, 2))
+    covs[:, 0, 0] = c * c * sd[:, 0] ** 2 + s * s * sd[:, 1] ** 2
+    covs[:, 1, 1] = s * s * sd[:, 0] ** 2 + c * c * sd[:, 1] ** 2
+    covs[:, 0, 1] = covs[:, 1, 0] = c * s * (sd[:, 0] ** 2 - sd[:, 1] ** 2)
+    means = np.column_stack([rng.uniform(0, W * CELL, n) + GRID.transform.c, GRID.transform.f - rng.uniform(0, H * CELL, n)])
+    return means, covs
+
+
 def random_gaussians(grid: Grid, n: int, seed: int, margin: float = 0.0, max_sigma: float = 1000.0):
     """n Gaussians, log-uniform major σ in [0.5, max_sigma] cells, eccentricity log-uniform in [1, 100]."""
     rng = np.random.default_rng(seed)
