@@ -483,10 +483,8 @@ class LazyPyramid:
         same pixel Gaussians and windows as :meth:`_fine`, so the same numbers; it skips the general
         path's sort, grouping and numpy steps (~45 µs a call against ~13 µs on a whole pyramid: the
         tracker's refreshes and widened gates make ~14,000 such calls on a 1 M-report stream)."""
-        n, grid = means.shape[0], prior.grid
-        px = np.empty((5, n))
-        top = ss._prepare(means, covs, grid.transform.c, grid.transform.f, grid.dx, grid.dy, float(grid.width),
-                          float(grid.height), max_rho, max_spread, px)
+        n = means.shape[0]
+        top, px = ss.small_batch_pixels(prior, means, covs, max_rho, max_spread)
         if not (0.0 <= top < ss.S0 * (1.0 - BORDER)):
             return None
         uc, vc, cuu, cuv, cvv = px

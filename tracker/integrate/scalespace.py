@@ -770,9 +770,7 @@ def integrate_small(
     (a serial loop calling it) can round differently in the last bit, since LLVM optimises the inlined
     fast-math code per caller (seen: 1 ulp on one Gaussian of the test, in one compilation of two)."""
     n = means.shape[0]
-    g = prior.grid
-    px = np.empty((5, n))
-    top = _prepare(means, covs, g.transform.c, g.transform.f, g.dx, g.dy, float(g.width), float(g.height), max_rho, max_spread, px)
+    top, px = small_batch_pixels(prior, means, covs, max_rho, max_spread)
     pyr = pyramid(prior, squared)
     p = pyr.packed
     # the level of each Gaussian in the snapshot: its smaller σ below the top level's scale, with a margin
@@ -787,6 +785,17 @@ def integrate_small(
     if counts.min() <= 0 or not np.isfinite(out).all():
         return None
     return out
+
+
+def small_batch_pixels(prior: TerrainPrior, means: np.ndarray, covs: np.ndarray, max_rho: float, max_spread: float
+                       ) -> tuple[float, np.ndarray]:
+    """(largest smaller σ in cells, or -1 when a Gaussian is tiny or not near the grid; (5, N) pixel
+    Gaussians uc, vc, cuu, cuv, cvv) of a small batch in metres on ``prior``'s grid (:func:`_prepare`),
+    for :func:`integrate_small` and the lazy pyramid's own."""
+    g = prior.grid
+    px = np.empty((5, means.shape[0]))
+    top = _prepare(means, covs, g.transform.c, g.transform.f, g.dx, g.dy, float(g.width), float(g.height), max_rho, max_spread, px)
+    return top, px
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
