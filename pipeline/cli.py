@@ -147,6 +147,8 @@ def cmd_learn(args: argparse.Namespace) -> None:
     config, lc = load_learn_config(args.region)
     if tiled and lc.mixture:
         raise ValueError(f"{args.region}: [learn.mixture] needs the whole grid (cross-fitted weights); it cannot be used with --tiled / --scheduler")
+    if tiled and lc.select:
+        raise ValueError(f"{args.region}: learn.select needs the whole grid (refits on block folds); it cannot be used with --tiled / --scheduler")
     inputs = config_inputs(config) | file_inputs(targets=args.targets)
     outputs = [Output("--out", args.out), Output("--hybrid-prior", args.hybrid_prior) if args.hybrid_prior else None,
                Output("--mixture-prior", args.mixture_prior) if args.mixture_prior else None]

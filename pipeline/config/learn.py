@@ -18,6 +18,7 @@
     temper = "cv"               # p ∝ r^τ before the mixture: τ by the same cross-fitted ML, a number, or "none" (default)
     weights = "count"           # a column of the targets giving each point's weight (--weights overrides)
     clamp = true                # continuous forms held at their end value beyond the training points' range
+    select = "backward"         # drop features by backward elimination on spatial block CV (default "none")
 
     [learn.mixture.towns]           # optional: a mixture of priors, one per table (at least 2), its
     features = ["water", "road_distance", "residential_distance"]   # weights chosen on cross-fitted blocks
@@ -47,7 +48,7 @@ from pipeline.prior.likelihood import read_toml
 _KEYS = {
     "features", "on_zero", "soften", "penalty_sd", "smooth_sd", "bin_width", "flexible",
     "folds", "block_size_m", "bandwidths_m", "hybrid", "forms", "defensive", "temper", "weights",
-    "clamp", "mixture",
+    "clamp", "mixture", "select",
 }
 FORMS = ("categorical", "road", "bins", "linear", "increasing", "decreasing", "spline")
 _FORM_KEYS = {"form", "scale", "knots", "smoothing", "bins", "edges"}
@@ -117,6 +118,9 @@ class LearnConfig:
     clamp: bool = True
     mixture: dict[str, tuple[str, ...]] = field(default_factory=dict)
     """Components of a mixture prior (name -> its features); empty: no mixture."""
+    select: str | None = None
+    """"backward": choose the features by backward elimination on spatial block CV
+    (:class:`pipeline.learn.select.BackwardSelection`); None: fit the features as listed."""
 
 
 def _positive(source: Path, key: str, v: object, allow_zero: bool = False) -> float:
@@ -219,6 +223,10 @@ def parse_learn(d: dict, source: Path) -> LearnConfig:
         kw["clamp"] = d["clamp"]
     if "mixture" in d:
         kw["mixture"] = _mixture(d["mixture"], source)
+    if "select" in d:
+        if d["select"] not in ("backward", "none"):
+            raise ConfigError(f"{source}: learn.select: must be \"backward\" or \"none\", got {d['select']!r}")
+        kw["select"] = None if d["select"] == "none" else "backward"
     return LearnConfig(**kw)
 
 

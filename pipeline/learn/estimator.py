@@ -652,6 +652,26 @@ class PriorEstimator(BaseEstimator):
         return out
 
 
+def with_features(estimator: PriorEstimator, features: tuple[str, ...] | list[str]) -> PriorEstimator:
+    """An unfitted clone of ``estimator`` fitting only ``features``, each with its form and flexible edges."""
+    keep = set(features)
+    return clone(estimator).set_params(
+        feature_names=tuple(features),
+        forms={k: v for k, v in (estimator.forms or {}).items() if k in keep} or None,
+        flexible={k: v for k, v in (estimator.flexible or {}).items() if k in keep} or None)
+
+
+def cross_fitted(estimator: BaseEstimator, X: np.ndarray, fold: np.ndarray, sample_weight: np.ndarray | None = None) -> np.ndarray:
+    """log p_{-f(i)}(x_i) per point of X (N, 2, metres): ``estimator`` (unfitted) fitted without point
+    i's fold (``fold``: N ids) and scored at x_i (log of a density per m²; -inf where it is zero)."""
+    out = np.empty(len(X))
+    for f in np.unique(fold):
+        test = fold == f
+        fitted = clone(estimator).fit(X[~test], sample_weight=None if sample_weight is None else sample_weight[~test])
+        out[test] = fitted.score_samples(X[test])
+    return out
+
+
 # ------------------------------------------------------------------------------- helpers
 def _with_reference(term: Term, level_area: np.ndarray) -> Term:
     """Discrete terms: the reference (r = 1) is the non-zero level with the most area."""

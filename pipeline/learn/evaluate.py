@@ -27,6 +27,7 @@ from pipeline.features.stack import FeatureStack
 from pipeline.learn.estimator import PriorEstimator
 from pipeline.learn.kde import block_ids, fit_kde_cv
 from pipeline.learn.mixture import MixturePrior
+from pipeline.learn.select import BackwardSelection
 from pipeline.learn.sufficient import check_points
 
 MODELS = ("uniform", "naive", "terrain", "kde", "hybrid")
@@ -89,24 +90,42 @@ class CVResult:
         return out
 
 
-def with_mixture(cv: CVResult, mixture: MixturePrior, points: np.ndarray, sample_weight: np.ndarray | None = None) -> CVResult:
-    """``cv`` with a "mixture" column: ``mixture`` (unfitted settings) fitted on each fold's training
-    points (the other folds' held-out points, so the same folds as every other model; its weights
-    cross-fitted on those points' own blocks) and scored on the fold (nats per point, density per m²);
-    its weights per fold in ``extra["mixture_weights"]``."""
+def with_model(cv: CVResult, name: str, estimator: BaseEstimator, points: np.ndarray,
+               sample_weight: np.ndarray | None = None,
+               describe: tuple[str, Callable[[BaseEstimator], object]] | None = None) -> CVResult:
+    """``cv`` with a ``name`` column: ``estimator`` (unfitted; anything with ``fit(X, sample_weight=)`` and
+    ``score_samples``) fitted on each fold's training points (the other folds' held-out points, so the
+    same folds as every other model) and scored on the fold (nats per point, density per m²);
+    ``describe = (key, fn)``: ``fn(fitted)`` per fold in ``extra[key]``. A procedure that chooses on its training
+    points (a mixture's weights, a feature selection) is thereby nested in the outer CV."""
     pts = check_points(points)
     index = cv.extra["test_index"]
-    column, weights = [], []
+    column, described = [], []
     for j, test in enumerate(index):
         train = np.concatenate([i for k, i in enumerate(index) if k != j])
-        fitted = clone(mixture).fit(pts[train], sample_weight=None if sample_weight is None else np.asarray(sample_weight)[train])
+        fitted = clone(estimator).fit(pts[train], sample_weight=None if sample_weight is None else np.asarray(sample_weight)[train])
         ld = fitted.score_samples(pts[test])
         if not np.all(np.isfinite(ld)):
-            raise ValueError(f"with_mixture: the mixture gives zero density to {int((~np.isfinite(ld)).sum())} held-out points")
+            raise ValueError(f"with_model: {name} gives zero density to {int((~np.isfinite(ld)).sum())} held-out points")
         column.append(float(ld.mean()))
-        weights.append(fitted.weights_.tolist())
-    return dataclasses.replace(cv, models=(*cv.models, "mixture"), scores=np.column_stack([cv.scores, column]),
-                               extra={**cv.extra, "mixture_weights": weights})
+        if describe is not None:
+            described.append(describe[1](fitted))
+    extra = {**cv.extra, describe[0]: described} if describe is not None else cv.extra
+    return dataclasses.replace(cv, models=(*cv.models, name), scores=np.column_stack([cv.scores, column]), extra=extra)
+
+
+def with_mixture(cv: CVResult, mixture: MixturePrior, points: np.ndarray, sample_weight: np.ndarray | None = None) -> CVResult:
+    """``cv`` with a "mixture" column (:func:`with_model`; the weights cross-fitted on each training
+    fold's own blocks), its weights per fold in ``extra["mixture_weights"]``."""
+    return with_model(cv, "mixture", mixture, points, sample_weight, ("mixture_weights", lambda m: m.weights_.tolist()))
+
+
+def with_selection(cv: CVResult, selection: BackwardSelection, points: np.ndarray,
+                   sample_weight: np.ndarray | None = None) -> CVResult:
+    """``cv`` with a "selected" column: the backward selection (:class:`BackwardSelection`, unfitted)
+    run on each fold's training points and its kept features scored on the fold; the features kept
+    per fold in ``extra["selected_features"]``."""
+    return with_model(cv, "selected", selection, points, sample_weight, ("selected_features", lambda m: list(m.features_)))
 
 
 def kde_log_mass(points: np.ndarray, bandwidth: float, bounds: tuple[float, float, float, float]) -> float:

@@ -16,7 +16,7 @@ from scipy.special import logsumexp
 from sklearn.base import BaseEstimator, clone
 from sklearn.utils.validation import check_is_fitted
 
-from pipeline.learn.estimator import PriorEstimator
+from pipeline.learn.estimator import PriorEstimator, cross_fitted
 from pipeline.learn.kde import block_folds
 from pipeline.learn.sufficient import check_points
 from pipeline.prior import TerrainPrior
@@ -79,12 +79,7 @@ class MixturePrior(BaseEstimator):
         fold = block_folds(pts, grid.bounds[:2], self.spatial_block, self.n_folds)
         if fold.max() < 1:
             raise ValueError(f"spatial_block: the points fill fewer than 2 blocks of {self.spatial_block:g} m")
-        logp = np.empty((len(pts), len(self.estimators)))
-        for f in range(int(fold.max()) + 1):
-            test = fold == f
-            for k, est in enumerate(self.estimators):
-                fitted = clone(est).fit(pts[~test], sample_weight=None if sw is None else sw[~test])
-                logp[test, k] = fitted.score_samples(pts[test])
+        logp = np.column_stack([cross_fitted(est, pts, fold, sw) for est in self.estimators])
         usable = np.isfinite(logp.max(axis=1))  # points no component reaches (off the grid, water) carry no information on w
         self.weights_ = simplex_weights(logp[usable], None if sw is None else sw[usable])
         with np.errstate(divide="ignore"):

@@ -23,12 +23,19 @@ from pipeline.config.learn import LearnConfig, load_learn_config
 from pipeline.config.region import RegionConfig
 from pipeline.gis.layers import LayerSpec, read_vector
 from pipeline.gis.targets import read_targets
-from pipeline.learn.estimator import SPATIAL, PriorEstimator
-from pipeline.learn.evaluate import CVResult, block_cv, default_bandwidths, with_mixture
+from pipeline.learn.estimator import SPATIAL, PriorEstimator, with_features
+from pipeline.learn.evaluate import (
+    CVResult,
+    block_cv,
+    default_bandwidths,
+    with_mixture,
+    with_selection,
+)
 from pipeline.learn.forms import from_scale
 from pipeline.learn.kde import block_ids, fit_kde_cv
 from pipeline.learn.mixture import MixturePrior
 from pipeline.learn.plots import plot_fit
+from pipeline.learn.select import BackwardSelection
 from pipeline.learn.sufficient import DISCRETE_FORMS, check_weights
 
 log = logging.getLogger(__name__)
@@ -47,6 +54,8 @@ class LearnReport:
     paths: dict[str, Path]
     settings: LearnConfig
     mixture: MixturePrior | None = None
+    selection: BackwardSelection | None = None
+    """With ``[learn] select``: the selection, whose kept features ``estimator``, ``naive`` and ``hybrid`` fit."""
 
     def table(self) -> str:
         """Fitted likelihoods with 95% intervals beside the naive fit, then the CV scores."""
@@ -89,6 +98,8 @@ class LearnReport:
             p = self.hybrid.likelihoods_[SPATIAL]
             lines.append(f"hybrid: terrain x (alpha + (1 - alpha) KDE/uniform)^gamma, gamma = {p['gamma']:.3f} "
                          f"(alpha = {p['alpha']:g}), KDE bandwidth {self.hybrid.spatial_bandwidth_:.0f} m")
+        if self.selection is not None:
+            lines.extend(selection_lines(self.selection))
         if self.mixture is not None:
             ws = ", ".join(f"{n} {w:.3f}" for n, w in zip(self.settings.mixture, self.mixture.weights_, strict=True))
             lines.append(f"mixture: p = sum of w_k p_k, w = {ws} (chosen on {self.mixture.n_folds} cross-fitted folds of "
@@ -112,6 +123,18 @@ class LearnReport:
                                 for m, w in s["hybrid_fold_wins"].items() if m != "uniform")
                 lines.append(f"  hybrid beats per fold (won/tied/lost of {nf}): {res}")
         return "\n".join(lines)
+
+
+def selection_lines(sel: BackwardSelection) -> list[str]:
+    """The backward selection's steps: per step the held-out score without each candidate feature."""
+    dropped = [f for f in sel.path_[0]["features"] if f not in sel.features_]
+    lines = [f"backward selection on {sel.n_folds} folds of {sel.spatial_block:g} m blocks (held-out nats/point, "
+             f"density per m^2): kept {', '.join(sel.features_)}; dropped {', '.join(dropped) or 'none'}"
+             + (f"; never dropped (structural zeros): {', '.join(sel.fixed_)}" if sel.fixed_ else "")]
+    for k, step in enumerate(sel.path_):
+        cands = ", ".join(f"-{f} {v:.4f}" for f, v in sorted(step["candidates"].items(), key=lambda kv: -kv[1]))
+        lines.append(f"  step {k + 1}: {len(step['features'])} features {step['score']:.4f}" + (f"; without: {cands}" if cands else ""))
+    return lines
 
 
 def _jsonable(obj):
@@ -170,8 +193,14 @@ def diagnostics(report: LearnReport) -> dict:
                           "folds": report.mixture.n_folds,
                           "components": {n: fit_info(e) | {"features": list(e.feature_names)}
                                          for n, e in zip(names, report.mixture.estimators_, strict=True)}}
+    if report.selection is not None:
+        sel = report.selection
+        out["selection"] = {"features": list(sel.features_), "fixed": list(sel.fixed_), "score_nats": sel.score_,
+                            "path": sel.path_, "block_m": sel.spatial_block, "folds": sel.n_folds}
     if report.cv is not None:
         out["cv"] = report.cv.summary()
+        if "selected_features" in report.cv.extra:
+            out["cv"]["selected_features_per_fold"] = report.cv.extra["selected_features"]
     return _jsonable(out)
 
 
@@ -268,11 +297,7 @@ def fit_hybrid(
 def fit_mixture(est: PriorEstimator, pts: np.ndarray, lc: LearnConfig, sample_weight: np.ndarray | None = None) -> MixturePrior:
     """The mixture of ``lc.mixture``'s components (``est``'s settings, each with its own features and their
     forms), its weights cross-fitted on ``lc``'s blocks and folds, fitted on points (N, 2) in metres."""
-    components = tuple(
-        clone(est).set_params(feature_names=features,
-                              forms={k: v for k, v in (est.forms or {}).items() if k in features} or None,
-                              flexible={k: v for k, v in (est.flexible or {}).items() if k in features} or None)
-        for features in lc.mixture.values())
+    components = tuple(with_features(est, features) for features in lc.mixture.values())
     return MixturePrior(components, spatial_block=lc.block_size_m, n_folds=lc.folds).fit(pts, sample_weight=sample_weight)
 
 
@@ -315,17 +340,23 @@ def learn_region(
         raise ValueError(f"{targets}: column {column!r} (--weights) has {len(w)} values for {len(pts)} targets")
     stack = build_features(config, progress)
     est.set_params(features=stack).fit(pts, sample_weight=w)
+    listed, sel = est, None
+    if lc.select:
+        sel = BackwardSelection(est, lc.block_size_m, lc.folds, progress).fit(pts, sample_weight=w)
+        est = sel.estimator_
     naive = clone(est).set_params(method="naive").fit(pts, sample_weight=w)
     hyb = fit_hybrid(est, pts, lc, sample_weight=w) if lc.hybrid else None
     result = None
     if cv:
         models = ("uniform", "naive", "terrain", "kde", "hybrid") if lc.hybrid else ("uniform", "naive", "terrain", "kde")
-        result = block_cv(pts, est, lc.folds, lc.block_size_m,
+        result = block_cv(pts, listed, lc.folds, lc.block_size_m,
                           np.asarray(lc.bandwidths_m) if lc.bandwidths_m else None, models, progress, sample_weight=w)
-    mix = fit_mixture(est, pts, lc, sample_weight=w) if lc.mixture else None
+        if sel is not None:  # the whole selection nested in each outer training fold
+            result = with_selection(result, BackwardSelection(listed, lc.block_size_m, lc.folds), pts, sample_weight=w)
+    mix = fit_mixture(listed, pts, lc, sample_weight=w) if lc.mixture else None
     if result is not None and mix is not None:
         result = with_mixture(result, clone(mix), pts, sample_weight=w)
-    report = write_report(LearnReport(est, naive, hyb, result, report_paths(out), lc, mix), targets)
+    report = write_report(LearnReport(est, naive, hyb, result, report_paths(out), lc, mix, sel), targets)
     if hybrid_prior is not None and hyb is not None:
         report.paths["hybrid_prior"] = hyb.prior_.write(hybrid_prior)
     if mix is not None:
