@@ -32,6 +32,7 @@ Figures and summary.json per prior in bench/figures/batch_experiment_<name>/. Qu
 
 from __future__ import annotations
 
+import dataclasses
 import multiprocessing
 import os
 import tempfile
@@ -110,6 +111,43 @@ def _convergence_rows(name: str, conv: pd.DataFrame) -> list[dict]:
                      "largest shortfall (nats)": round(float(max(short.max(), 0.0)), 6),
                      "short above long on": int((short < -1e-9).sum())})
     return rows
+
+
+REPLICATION_SEED = 3000
+"""First seed of the replication's data sets (:func:`replicate`), fresh in session 24."""
+
+
+def replicate(blocks: int = 4, per_block: int = 28, base_seed: int = REPLICATION_SEED, taus: str = "-8:3:0.5",
+              workers: int = 2) -> dict:
+    """The TT posterior-against-greedy cells on ``blocks`` × ``per_block`` fresh data sets of the bundled
+    region (the settings of :func:`run`): per block of ``per_block`` (τ* per block) and on all of them
+    (τ* on all), P(posterior better) on |N̂_D − N_D| and on mean Score at each one's τ* and with the
+    exact S. Evidence on the power of the 28-set test; it does not re-decide :func:`run`'s cells.
+    ``python -c "import bench.bench_batch_experiment as b, json; print(json.dumps(b.replicate(), indent=1))"``."""
+    with tempfile.TemporaryDirectory() as tmp:
+        path = str(Path(tmp) / "prior.tif")
+        with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
+            pool.submit(_build_prior, str(CONFIGS["region"]), path).result()
+        config = ExperimentConfig(n_datasets=blocks * per_block, n_reports=100, base_seed=base_seed, taus=parse_taus(taus),
+                                  poisson_mu=expected_in_window(TerrainPrior.read(path), 200),
+                                  methods=("greedy", "batch", "posterior"), batch_anneal=10, batch_restarts=0,
+                                  batch_nd_samples=100, batch_nd_burn_in=10)
+        results = run_experiment(path, config, workers=workers, progress=False)
+
+    def cells(sub: pd.DataFrame, cfg: ExperimentConfig) -> dict:
+        summary = summarise(sub, cfg)
+        d = summary["posterior_vs_greedy"]["TT"]
+        return {"seeds": [cfg.seeds[0], cfg.seeds[-1]],
+                "best_tau": {a: summary["variants"][a]["best_tau"] for a in ("TT", "TT posterior")},
+                **{k: d[k] for k in ("mean_nd_abs_error_best_tau", "prob_better_nd_error_best_tau", "mean_score_x10^4.5",
+                                     "prob_better_score_best_tau", "prob_better_nd_error_exact_s", "prob_better_score_exact_s")}}
+
+    out = {}
+    for b in range(blocks):
+        cfg = dataclasses.replace(config, n_datasets=per_block, base_seed=base_seed + b * per_block)
+        out[f"block {b + 1}"] = cells(results[results["seed"].isin(cfg.seeds)], cfg)
+    out["all"] = cells(results, config)
+    return out
 
 
 def run(quick: bool = False) -> dict:
