@@ -128,12 +128,12 @@ class LearnReport:
 def selection_lines(sel: BackwardSelection) -> list[str]:
     """The backward selection's steps: per step the held-out score without each candidate feature."""
     dropped = [f for f in sel.path_[0]["features"] if f not in sel.features_]
-    lines = [f"backward selection on {sel.n_folds} folds of {sel.spatial_block:g} m blocks (held-out nats/point, "
-             f"density per m^2): kept {', '.join(sel.features_)}; dropped {', '.join(dropped) or 'none'}"
-             + (f"; never dropped (structural zeros): {', '.join(sel.fixed_)}" if sel.fixed_ else "")]
+    lines = [f"backward selection on {sel.n_folds} folds of {sel.spatial_block:g} m blocks: kept {', '.join(sel.features_)}; "
+             f"dropped {', '.join(dropped) or 'none'}" + (f"; never dropped (structural zeros): {', '.join(sel.fixed_)}" if sel.fixed_ else ""),
+             "  held-out mean log density (nats/point, density per m^2) of each step's features, and without each candidate:"]
     for k, step in enumerate(sel.path_):
-        cands = ", ".join(f"-{f} {v:.4f}" for f, v in sorted(step["candidates"].items(), key=lambda kv: -kv[1]))
-        lines.append(f"  step {k + 1}: {len(step['features'])} features {step['score']:.4f}" + (f"; without: {cands}" if cands else ""))
+        cands = ", ".join(f"{f} {v:.4f}" for f, v in sorted(step["candidates"].items(), key=lambda kv: -kv[1]))
+        lines.append(f"  step {k + 1}: {len(step['features'])} features {step['score']:.4f}" + (f"; without {cands}" if cands else ""))
     return lines
 
 
