@@ -23,6 +23,11 @@ features (:class:`pipeline.learn.BackwardSelection`, ``[learn] select = "backwar
 while that raises the pooled held-out log density of 5 folds of 2 km blocks inside the training points),
 nested in each outer fold; its procedure was written down before its first run (session 24), though
 after the earlier sessions' outer-fold figures had shown which covariates learn the towns.
+Every fit of ours is made in its fold's observation window (:mod:`pipeline.learn.window`: the held-out
+blocks left out of the Poisson background, not counted as searched and empty), and Maxent draws its
+background from the same window; the row "folds fitted on the whole grid" and the Maxent rows "background
+from the whole grid" are the same models fitted the earlier way (session 25 added the window after
+seeing, in session 24's exploration, that it lifts the outlying fold).
 Maxent's raw output is turned into a density on the grid like ours: evaluated on every cell, zero
 on water (the same structural zero our models have), divided by its sum times the cell area. Gains
 are held-out nats per point over the uniform density on the grid; per fold and pooled (weighted by
@@ -32,6 +37,7 @@ held-out points). ``quick``: 2 Maxent variants and 10,000 background cells inste
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import tempfile
 import time
 import tomllib
@@ -46,8 +52,12 @@ DATA = REPO.parent / "shared" / "real_data" / "swellendam"
 CONFIG = REPO / "terrain_data" / "swellendam_learn.toml"
 BLOCK_M = 2000.0
 FOLDS = 5
+WHOLE_GRID = "terrain (forms, tracks, track ends, towns), folds fitted on the whole grid"
 SESSION5 = ("water", "road_distance", "protected", "slope", "elevation")
 """The fitted-forms model's features before the farm-track covariates (their forms are the config's)."""
+WHOLE_GRID_BACKGROUND = ", background from the whole grid"
+"""Suffix of the Maxent rows whose background cells include the held-out blocks (the others draw them
+from the training folds' window, as our fits' background)."""
 MAXENT_VARIANTS = {
     "maxent lhp b1.5": {"feature_types": ["linear", "hinge", "product"], "beta_multiplier": 1.5},
     "maxent lqh b1": {"feature_types": ["linear", "quadratic", "hinge"], "beta_multiplier": 1.0},
@@ -97,26 +107,30 @@ def ours(cfg, learn, stack, pts) -> tuple[dict, list, dict]:
         # picked after the outer folds of a trial run showed the place distance hurting the outlying fold
         "terrain (forms, tracks)": forms((*SESSION5, "track_distance")),
         "terrain (forms, tracks, track ends, towns)": forms(learn.features),
+        # the same, each fold fitted on the whole grid: the held-out blocks counted as searched and empty
+        WHOLE_GRID: forms(learn.features),
     }
-    out, index = {}, None
+    out, index, windowed = {}, None, None
     for name, est in runs.items():
         t = time.process_time()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            cv = block_cv(pts, est, FOLDS, BLOCK_M, None, ("uniform", "terrain", "hybrid"), progress=False)
+            cv = block_cv(pts, est, FOLDS, BLOCK_M, None, ("uniform", "terrain", "hybrid"), progress=False,
+                          window=name != WHOLE_GRID)
         g = cv.gains()
         out[name] = g[:, cv.models.index("terrain")]
         out[name.replace("terrain", "hybrid")] = g[:, cv.models.index("hybrid")]
         out[f"{name} seconds"] = time.process_time() - t
         print(name, {k: np.round(v, 3).tolist() for k, v in out.items() if not k.endswith("seconds")}, flush=True)
         index = cv.extra["test_index"] if index is None else index
+        windowed = cv if name != WHOLE_GRID else windowed
         assert all(np.array_equal(a, b) for a, b in zip(index, cv.extra["test_index"], strict=True))
     t = time.process_time()
     name = "terrain mixture (towns + farmland)"
     components = tuple(forms(f) for f in learn.mixture.values())
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        mixed = with_mixture(cv, MixturePrior(components, spatial_block=BLOCK_M), pts)
+        mixed = with_mixture(windowed, MixturePrior(components, spatial_block=BLOCK_M), pts)
     out[name] = mixed.gains()[:, mixed.models.index("mixture")]
     out[f"{name} seconds"] = time.process_time() - t
     print(name, np.round(out[name], 3).tolist(), mixed.extra["mixture_weights"], flush=True)
@@ -124,25 +138,33 @@ def ours(cfg, learn, stack, pts) -> tuple[dict, list, dict]:
     selected = "terrain, backward-selected from the 8 features (nested)"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        chosen = with_selection(cv, BackwardSelection(forms(learn.features), BLOCK_M, FOLDS), pts)
+        chosen = with_selection(windowed, BackwardSelection(forms(learn.features), BLOCK_M, FOLDS), pts)
     out[selected] = chosen.gains()[:, chosen.models.index("selected")]
     out[f"{selected} seconds"] = time.process_time() - t
     print(selected, np.round(out[selected], 3).tolist(), chosen.extra["selected_features"], flush=True)
     return out, index, {name: mixed.extra["mixture_weights"], selected: chosen.extra["selected_features"]}
 
 
-def maxent(stack, pts, index, variants: dict, names: tuple[str, ...], n_background: int, seed: int = 0) -> dict:
+def maxent(stack, pts, index, variants: dict, names: tuple[str, ...], n_background: int, windowed: bool, seed: int = 0) -> dict:
     """Per variant the held-out gain per fold of Maxent on the features ``names``, trained on the other
-    folds' points."""
+    folds' points; its background cells drawn from the dry cells outside the held-out blocks when
+    ``windowed`` (as our fits' observation window), else from every dry cell."""
     import elapid
+
+    from pipeline.learn import block_ids
+    from pipeline.learn.window import cell_blocks
 
     cat = [k for k, f in enumerate(names) if stack[f].kind == "categorical"]
     grid = stack.grid
     cells = np.column_stack([np.nan_to_num(stack[f].values.ravel().astype(np.float64)) for f in names])
     dry = stack["water"].values.ravel() == 0
     dry_idx = np.flatnonzero(dry)
-    rng = np.random.default_rng(seed)
-    bg = cells[rng.choice(np.flatnonzero(dry), n_background, replace=False)]
+    blocks = cell_blocks(grid, BLOCK_M)
+    backgrounds = []
+    for test in index:
+        held = np.unique(block_ids(pts[test], grid.bounds[:2], BLOCK_M)) if windowed else np.zeros(0, np.int64)
+        rng = np.random.default_rng(seed)
+        backgrounds.append(cells[rng.choice(np.flatnonzero(dry & ~np.isin(blocks, held)), n_background, replace=False)])
     samples = stack.sample(pts[:, 0], pts[:, 1])
     at = np.column_stack([np.nan_to_num(np.asarray(samples[f], dtype=np.float64)) for f in names])
     row, col, _ = grid.cell_index(pts[:, 0], pts[:, 1])
@@ -152,7 +174,7 @@ def maxent(stack, pts, index, variants: dict, names: tuple[str, ...], n_backgrou
     for vname, kw in variants.items():
         t = time.process_time()
         gains = []
-        for test in index:
+        for test, bg in zip(index, backgrounds, strict=True):
             train = np.setdiff1d(np.concatenate(index), test)
             x = np.vstack([at[train], bg])
             y = np.r_[np.ones(len(train)), np.zeros(len(bg))]
@@ -209,9 +231,11 @@ def run(quick: bool = False) -> dict:
     # Maxent sees the same feature grids as each of our fitted-forms models
     mixed = tuple(dict.fromkeys(f for features in learn.mixture.values() for f in features))
     # the template's own features first: the issue's "Maxent, same features" (its outlying fold 1.73-2.13)
-    for tag, names in ((" template features", tuple(cfg.model.terms)), ("", SESSION5), (" +tracks, ends, towns", learn.features),
-                       (" +tracks, ends, towns, residential, water bodies", mixed)):
-        out = maxent(stack, pts, index, base, names, 10_000 if quick else 30_000)
+    for (tag, names), windowed in itertools.product(
+            ((" template features", tuple(cfg.model.terms)), ("", SESSION5), (" +tracks, ends, towns", learn.features),
+             (" +tracks, ends, towns, residential, water bodies", mixed)), (True, False)):
+        out = maxent(stack, pts, index, base, names, 10_000 if quick else 30_000, windowed)
+        tag = tag + ("" if windowed else WHOLE_GRID_BACKGROUND)
         peers.update({k.replace(" seconds", "") + tag + (" seconds" if k.endswith("seconds") else ""): v for k, v in out.items()})
     variants = [k for k in peers if not k.endswith("seconds")]
     n = np.array([len(i) for i in index], dtype=float)

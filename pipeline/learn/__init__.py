@@ -36,9 +36,10 @@ from pipeline.learn.sufficient import (
     point_stats,
     with_range,
 )
+from pipeline.learn.window import BlockWindow
 
 __all__ = [
-    "MODELS", "SPATIAL", "BackwardSelection", "CVResult", "CellStats", "FoldModels", "MixturePrior", "PointStats", "PriorEstimator", "Term",
+    "MODELS", "SPATIAL", "BackwardSelection", "BlockWindow", "CVResult", "CellStats", "FoldModels", "MixturePrior", "PointStats", "PriorEstimator", "Term",
     "block_cv", "block_folds", "cross_fitted", "block_ids", "cached_cell_stats", "cell_stats", "check_points",
     "default_bandwidths", "fit_kde_cv", "grid_kde", "log_kde_feature", "make_terms", "point_stats", "read_targets", "simplex_weights",
     "template_start", "with_features", "with_mixture", "with_model", "with_range", "with_selection",

@@ -37,7 +37,7 @@ from pipeline.build.region import calibrate
 from pipeline.config.learn import FormSpec
 from pipeline.features.stack import Feature, FeatureStack
 from pipeline.learn.forms import BASIS_FORMS, difference_penalty, from_scale, to_scale
-from pipeline.learn.kde import block_folds, log_kde_feature
+from pipeline.learn.kde import block_folds, block_ids, log_kde_feature
 from pipeline.learn.poisson import FitResult, Objective, TermParams, fit, kde_logr, term_params
 from pipeline.learn.sufficient import (
     CONTINUOUS_FORMS,
@@ -52,6 +52,7 @@ from pipeline.learn.sufficient import (
     point_stats,
     with_range,
 )
+from pipeline.learn.window import BlockWindow
 from pipeline.prior.likelihood import (
     BinnedLikelihood,
     CategoricalLikelihood,
@@ -216,6 +217,12 @@ class PriorEstimator(BaseEstimator):
     temper : the tempered model p ∝ r^τ (before the mixture): None (τ = 1), a number, or ``"cv"``: τ
         chosen with ε on the same cross-fitted likelihood (``temper_``). τ < 1 flattens a model whose
         effects, learned in the training blocks, are too sharp elsewhere.
+    clamp : hold every basis form at its end value beyond the range of the training points.
+    window : the observation window, a :class:`pipeline.learn.window.BlockWindow`: the points were
+        looked for on the grid less its unobserved blocks, so the fit's background ∫λ leaves them
+        out (None: the whole grid). The fitted prior is still a density over the whole grid. Block
+        CV sets it to the held-out blocks; the cross-fits of ``"cv"`` calibration leave out each
+        inner fold's blocks the same way. A point inside an unobserved block is a ValueError.
     """
 
     def __init__(
@@ -239,6 +246,7 @@ class PriorEstimator(BaseEstimator):
         defensive: float | str | None = None,
         temper: float | str | None = None,
         clamp: bool = True,
+        window: BlockWindow | None = None,
     ) -> None:
         self.features = features
         self.template = template
@@ -259,6 +267,7 @@ class PriorEstimator(BaseEstimator):
         self.defensive = defensive
         self.temper = temper
         self.clamp = clamp
+        self.window = window
 
     def __sklearn_clone__(self) -> PriorEstimator:
         """A clone sharing the feature stack: it is the data the points live on, not a setting, and
@@ -282,6 +291,8 @@ class PriorEstimator(BaseEstimator):
         t = self.temper
         if not (t is None or t == "cv" or (isinstance(t, int | float) and not isinstance(t, bool) and TEMPER_MIN <= t <= 1.5)):
             raise ValueError(f"temper must be None, 'cv' or a number in [{TEMPER_MIN}, 1.5], got {t!r}")
+        if self.window is not None and not isinstance(self.window, BlockWindow):
+            raise ValueError(f"window must be None or a BlockWindow, got {type(self.window).__name__}")
 
     def fit(self, X: np.ndarray, y: None = None, sample_weight: np.ndarray | None = None) -> PriorEstimator:
         """Fit to points X (N, 2) in metres in the grid's CRS (``y`` is ignored). Points off the grid are
@@ -302,6 +313,11 @@ class PriorEstimator(BaseEstimator):
         features = stack = self.features
         self.spatial_bandwidth_ = float(self.spatial_bandwidth) if self.spatial_bandwidth else None
         terms, _ = make_terms(features, self.template, self.feature_names, self.flexible, self.bin_width, self.n_bins, self.forms)
+        if self.window is not None:
+            outside = ~self.window.observed(features.grid, pts)
+            if outside.any():
+                raise ValueError(f"window: {int(outside.sum())} of {len(pts)} points lie in its unobserved blocks "
+                                 f"(first at x = {pts[outside][0, 0]:.1f} m, y = {pts[outside][0, 1]:.1f} m)")
         loo = None
         if self.spatial_bandwidth_:
             inside = features.grid.contains(pts[:, 0], pts[:, 1])
@@ -314,7 +330,12 @@ class PriorEstimator(BaseEstimator):
             stack = FeatureStack(features.grid, dict(features.features))
             stack.add(Feature(SPATIAL, logk, "continuous", "log(KDE over uniform)"))
             terms.append(with_range(Term(SPATIAL, "kde", bin_width=SPATIAL_BIN), logk))
-        cells = cached_cell_stats(stack, tuple(terms))
+        # the grid pass is split by block where some fit leaves blocks out: the window's, else the
+        # calibration folds' (the fit on all points then keeps the unsplit pass: the same fit as without ε, τ)
+        cells = cached_cell_stats(stack, tuple(terms), None if self.window is None else float(self.window.size))
+        calibrate = "cv" in (self.defensive, self.temper)
+        split = cells if self.window is not None or not calibrate else \
+            cached_cell_stats(stack, tuple(terms), float(self.spatial_block or DEFENSIVE_BLOCK_M))
         pass_times = (time.perf_counter() - t0, time.process_time() - c0)
         pstats = point_stats(stack, tuple(terms), pts, weights)
         if loo is not None:
@@ -322,8 +343,9 @@ class PriorEstimator(BaseEstimator):
         self.stack_ = stack
         self.n_features_in_ = 2
         groups = None
-        if "cv" in (self.defensive, self.temper):
-            groups = block_folds(pts, features.grid.bounds[:2], self.spatial_block or DEFENSIVE_BLOCK_M, self.spatial_folds)
+        if calibrate:
+            groups = (block_folds(pts, features.grid.bounds[:2], self.spatial_block or DEFENSIVE_BLOCK_M, self.spatial_folds),
+                      block_ids(pts, features.grid.bounds[:2], split.block_size), split)
         return self._fit_from_stats(cells, pstats, t0, c0, pass_times, groups)
 
     def fit_stats(self, cells: CellStats, points: PointStats) -> PriorEstimator:
@@ -347,10 +369,13 @@ class PriorEstimator(BaseEstimator):
         self.n_features_in_ = 2
         return self._fit_from_stats(cells, points, t0, c0, (np.nan, np.nan))  # the pass ran elsewhere
 
-    def _fit_from_stats(self, cells: CellStats, pstats: PointStats, t0: float, c0: float,
-                        pass_times: tuple[float, float], groups: np.ndarray | None = None) -> PriorEstimator:
+    def _fit_from_stats(self, grid_cells: CellStats, pstats: PointStats, t0: float, c0: float,
+                        pass_times: tuple[float, float], groups: tuple[np.ndarray, np.ndarray, CellStats] | None = None) -> PriorEstimator:
         """The fit proper, shared by :meth:`fit` and :meth:`fit_stats`: reference levels, parameters,
-        the optimisation and every fitted attribute."""
+        the optimisation and every fitted attribute. ``grid_cells`` are the whole grid's statistics (the
+        fit uses those inside ``window``); ``groups`` the points' calibration folds, their block ids and the
+        grid's statistics split by those blocks."""
+        cells = grid_cells.within(self.window)
         terms = [_with_reference(t, cells.level_area(k)) for k, t in enumerate(cells.terms)]
         cells = dataclasses.replace(cells, terms=tuple(terms))
         pstats = dataclasses.replace(pstats, terms=tuple(terms))
@@ -395,7 +420,8 @@ class PriorEstimator(BaseEstimator):
         self.pass_seconds_, self.pass_cpu_seconds_ = pass_times
         self.fit_cpu_seconds_ = time.process_time() - c0
         if "cv" in (self.defensive, self.temper):
-            self.defensive_, self.temper_ = self._cross_fit_calibration(cells, used, params, groups[keep])
+            split = dataclasses.replace(groups[2], terms=cells.terms)
+            self.defensive_, self.temper_ = self._cross_fit_calibration(split, used, params, groups[0][keep], groups[1][keep])
         else:
             self.defensive_, self.temper_ = float(self.defensive or 0.0), float(self.temper or 1.0)
         self._describe(full)
@@ -455,33 +481,36 @@ class PriorEstimator(BaseEstimator):
             chosen = self._solve(cells, used, params, chosen[0].x)
         return params, aic, chosen
 
-    def _cross_fit_calibration(self, cells: CellStats, used: PointStats, params: list[TermParams],
-                               fold: np.ndarray) -> tuple[float, float]:
+    def _cross_fit_calibration(self, grid_cells: CellStats, used: PointStats, params: list[TermParams],
+                               fold: np.ndarray, block: np.ndarray) -> tuple[float, float]:
         """(ε, τ) maximising Σ_i w_i log((1 − ε)·p^τ_{−f(i)}(x_i) + ε·u): p_{−f} the model fitted
-        without fold f, p^τ ∝ r^τ its tempered density (τ = 1 unless ``temper="cv"``, ε = 0 unless
-        ``defensive="cv"``), u uniform over the support (1 / its area, m⁻²)."""
+        without fold f in the window less the blocks ``block`` of fold f's points (``grid_cells``: the
+        grid's statistics split by those blocks), p^τ ∝ r^τ its tempered density over the whole grid (τ = 1 unless
+        ``temper="cv"``, ε = 0 unless ``defensive="cv"``), u uniform over the support (1 / its area, m⁻²)."""
         folds = np.unique(fold)
         if len(folds) < 2:
             return 0.0, 1.0
+        window = self.window or BlockWindow(grid_cells.block_size)
         lr = np.empty(len(fold))
         per_fold = []
-        support = np.ones(len(cells.area), dtype=bool)
+        support = np.ones(len(grid_cells.area), dtype=bool)
         for f in folds:
             train = used.subset(fold != f)
             test = fold == f
-            res = self._solve(cells, train, params, self.theta_ if self.method == "ml" else None)  # warm start: the full fit
+            inner = grid_cells.within(window.without(np.unique(block[test])))
+            res = self._solve(inner, train, params, self.theta_ if self.method == "ml" else None)  # warm start: the full fit
             x = np.concatenate([r.x for r in res])
-            obj = Objective(cells, train, params, list(range(len(params))), self.penalty_sd, self.smooth_sd)
+            obj = Objective(inner, train, params, list(range(len(params))), self.penalty_sd, self.smooth_sd)
             lr_f = np.zeros(int(test.sum()))
-            lc = np.zeros(len(cells.area))
+            lc = np.zeros(len(grid_cells.area))
             for k, th in enumerate(obj.split(x)):
                 lr_f += params[k].logr(th, used.index[test, k], used.value[test, k].copy())
-                lc += params[k].cell_lut(th)[cells.index[:, k]]
+                lc += params[k].cell_lut(th)[grid_cells.index[:, k]]
             lr[test] = lr_f
             support &= np.isfinite(lc)
             per_fold.append((test, lc))
-        log_u = -np.log(cells.area[support].sum())
-        log_area = np.log(cells.area)
+        log_u = -np.log(grid_cells.area[support].sum())
+        log_area = np.log(grid_cells.area)
         per_fold = [(test, lc[np.isfinite(lc)], log_area[np.isfinite(lc)]) for test, lc in per_fold]
         w = used.weights / used.weights.sum()
         return fit_calibration(per_fold, lr, log_u, w, self.defensive, self.temper)
@@ -661,14 +690,19 @@ def with_features(estimator: PriorEstimator, features: tuple[str, ...] | list[st
         flexible={k: v for k, v in (estimator.flexible or {}).items() if k in keep} or None)
 
 
-def cross_fitted(estimator: BaseEstimator, X: np.ndarray, fold: np.ndarray, sample_weight: np.ndarray | None = None) -> np.ndarray:
+def cross_fitted(estimator: PriorEstimator, X: np.ndarray, fold: np.ndarray, sample_weight: np.ndarray | None = None,
+                 block_size: float = DEFENSIVE_BLOCK_M) -> np.ndarray:
     """log p_{-f(i)}(x_i) per point of X (N, 2, metres): ``estimator`` (unfitted) fitted without point
-    i's fold (``fold``: N ids) and scored at x_i (log of a density per m²; -inf where it is zero)."""
+    i's fold (``fold``: N ids) and scored at x_i (log of a density per m²; -inf where it is zero).
+    Each fit's observation window (the estimator's ``window``, else the grid in blocks of ``block_size``
+    metres) leaves out the blocks holding the fold's points: they were held out, not searched."""
     out = np.empty(len(X))
+    window = estimator.window or BlockWindow(block_size)
+    grid = estimator.features.grid
     for f in np.unique(fold):
         test = fold == f
-        fitted = clone(estimator).fit(X[~test], sample_weight=None if sample_weight is None else sample_weight[~test])
-        out[test] = fitted.score_samples(X[test])
+        fitted = clone(estimator).set_params(window=window.without_points(grid, X[test]))
+        out[test] = fitted.fit(X[~test], sample_weight=None if sample_weight is None else sample_weight[~test]).score_samples(X[test])
     return out
 
 

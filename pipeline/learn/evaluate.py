@@ -29,6 +29,7 @@ from pipeline.learn.kde import block_ids, fit_kde_cv
 from pipeline.learn.mixture import MixturePrior
 from pipeline.learn.select import BackwardSelection
 from pipeline.learn.sufficient import check_points
+from pipeline.learn.window import BlockWindow
 
 MODELS = ("uniform", "naive", "terrain", "kde", "hybrid")
 TIE_NATS = 1e-4
@@ -63,6 +64,8 @@ class CVResult:
             "n_test_per_fold": self.n_test.tolist(),
             "kde_bandwidth_m": self.bandwidths.tolist(),
             "uniform_nats": float(self.scores[:, self.models.index("uniform")].mean()),
+            # True: each fold's fits left its held-out blocks out of their observation window (pipeline.learn.window)
+            "held_out_blocks_unobserved": any(w is not None for w in self.extra.get("windows", ())),
             "gain_nats": {},
         }
         # weight folds by their held-out points for the pooled mean; report the fold spread unweighted
@@ -97,13 +100,18 @@ def with_model(cv: CVResult, name: str, estimator: BaseEstimator, points: np.nda
     ``score_samples``) fitted on each fold's training points (the other folds' held-out points, so the
     same folds as every other model) and scored on the fold (nats per point, density per m²);
     ``describe = (key, fn)``: ``fn(fitted)`` per fold in ``extra[key]``. A procedure that chooses on its training
-    points (a mixture's weights, a feature selection) is thereby nested in the outer CV."""
+    points (a mixture's weights, a feature selection) is thereby nested in the outer CV. When ``cv`` fitted its
+    folds in observation windows (``extra["windows"]``), ``estimator``'s ``window`` is set to each fold's."""
     pts = check_points(points)
     index = cv.extra["test_index"]
+    windows = cv.extra.get("windows") or [None] * len(index)
     column, described = [], []
     for j, test in enumerate(index):
         train = np.concatenate([i for k, i in enumerate(index) if k != j])
-        fitted = clone(estimator).fit(pts[train], sample_weight=None if sample_weight is None else np.asarray(sample_weight)[train])
+        fitted = clone(estimator)
+        if windows[j] is not None:
+            fitted.set_params(window=windows[j])
+        fitted = fitted.fit(pts[train], sample_weight=None if sample_weight is None else np.asarray(sample_weight)[train])
         ld = fitted.score_samples(pts[test])
         if not np.all(np.isfinite(ld)):
             raise ValueError(f"with_model: {name} gives zero density to {int((~np.isfinite(ld)).sum())} held-out points")
@@ -152,16 +160,19 @@ class FoldModels(BaseEstimator):
     "naive" is its ``method="naive"`` twin; "kde" is scikit-learn's KernelDensity with the
     bandwidth among ``bandwidths`` (metres) chosen by block CV inside the training fold (blocks of
     ``block_size`` metres from the grid's corner); "hybrid" adds the spatial term at that bandwidth,
-    γ fitted on KDE values from ``n_folds`` block folds of the training points.
+    γ fitted on KDE values from ``n_folds`` block folds of the training points. ``blocks``: ids of the
+    blocks (``block_size`` metres) holding the CV's points; those without a training point were held
+    out, and the fits leave them out of their observation window (None: the whole grid is the window).
     """
 
     def __init__(self, estimator: PriorEstimator, models: tuple[str, ...] = MODELS, bandwidths: np.ndarray | None = None,
-                 block_size: float = 2000.0, n_folds: int = 5) -> None:
+                 block_size: float = 2000.0, n_folds: int = 5, blocks: tuple[int, ...] | None = None) -> None:
         self.estimator = estimator
         self.models = models
         self.bandwidths = bandwidths
         self.block_size = block_size
         self.n_folds = n_folds
+        self.blocks = blocks
 
     def fit(self, X: np.ndarray, y: None = None, on_fit: Callable[[int], object] | None = None,
             sample_weight: np.ndarray | None = None) -> FoldModels:
@@ -172,10 +183,14 @@ class FoldModels(BaseEstimator):
         if "kde" in self.models or "hybrid" in self.models:
             self.kde_ = fit_kde_cv(X, block_ids(X, stack.grid.bounds[:2], self.block_size), self.bandwidths)
             self.kde_log_mass_ = kde_log_mass(X, float(self.kde_.bandwidth), stack.grid.bounds)
+        window = None
+        if self.blocks is not None:
+            window = BlockWindow(self.block_size, set(self.blocks) - set(block_ids(X, stack.grid.bounds[:2], self.block_size).tolist()))
+        self.window_ = window
         params = {"naive": {"method": "naive"}, "terrain": {},
                   "hybrid": {"spatial_bandwidth": float(self.kde_.bandwidth) if self.kde_ else None,
                              "spatial_block": self.block_size, "spatial_folds": self.n_folds}}
-        self.fits_ = {m: clone(self.estimator).set_params(**params[m]).fit(X, sample_weight=sample_weight)
+        self.fits_ = {m: clone(self.estimator).set_params(window=window, **params[m]).fit(X, sample_weight=sample_weight)
                       for m in self.models if m in params}
         if on_fit is not None:
             on_fit(1)
@@ -206,6 +221,7 @@ def block_cv(
     models: tuple[str, ...] = MODELS,
     progress: bool = True,
     sample_weight: np.ndarray | None = None,
+    window: bool = True,
 ) -> CVResult:
     """Spatial block CV of ``models`` (a subset of :data:`MODELS`) at points (N, 2) in metres on
     ``estimator``'s feature stack.
@@ -217,6 +233,9 @@ def block_cv(
     settlement in Swellendam: one partition of the training blocks is a noisy criterion.) Points off the grid, and (with ``on_zero="drop"``) on
     structural zeros, are excluded from every model's test set alike and counted.
     ``sample_weight`` weights the fits (the KDE baseline and the held-out means are unweighted).
+    ``window``: each fold's terrain models are fitted in the observation window that leaves out the
+    held-out blocks (:mod:`pipeline.learn.window`: unobserved, not searched and empty); False fits them
+    on the whole grid, as if the held-out blocks had been searched and held no targets.
     """
     unknown = set(models) - set(MODELS)
     if unknown or "uniform" not in models:
@@ -234,7 +253,8 @@ def block_cv(
     if n_blocks < n_folds:
         raise ValueError(f"block_cv: only {n_blocks} blocks of {block_size:g} m hold points; need >= n_folds = {n_folds}")
     bw_grid = default_bandwidths(stack) if bandwidths is None else np.asarray(bandwidths, dtype=np.float64)
-    folds = FoldModels(base, tuple(models), bw_grid, float(block_size), n_folds)
+    folds = FoldModels(base, tuple(models), bw_grid, float(block_size), n_folds,
+                       tuple(np.unique(groups).tolist()) if window else None)
     with tqdm(total=n_folds, desc="block CV", unit="fold", disable=not progress) as bar:
         cv = cross_validate(folds, pts, groups=groups, cv=GroupKFold(n_splits=n_folds),
                             scoring={m: partial(_held_out, model=m) for m in models}, params={**fit_params, "on_fit": bar.update},
@@ -246,5 +266,6 @@ def block_cv(
         np.array([k.bandwidth if k is not None else np.nan for k in kdes], dtype=np.float64), float(block_size),
         int(len(points)), int(len(points) - usable.sum()),
         # which points each fold held out (indices into ``points``), so peers can be scored on the same folds
-        {"test_index": [np.flatnonzero(usable)[te] for te in cv["indices"]["test"]]},
+        {"test_index": [np.flatnonzero(usable)[te] for te in cv["indices"]["test"]],
+         "windows": [e.window_ for e in cv["estimator"]]},
     )

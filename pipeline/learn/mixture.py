@@ -19,6 +19,7 @@ from sklearn.utils.validation import check_is_fitted
 from pipeline.learn.estimator import PriorEstimator, cross_fitted
 from pipeline.learn.kde import block_folds
 from pipeline.learn.sufficient import check_points
+from pipeline.learn.window import BlockWindow
 from pipeline.prior import TerrainPrior
 
 EM_TOL = 1e-10
@@ -56,15 +57,19 @@ class MixturePrior(BaseEstimator):
         features with different covariates: one for towns, one for farmland).
     spatial_block : block side (metres) of the cross-fitting folds.
     n_folds : number of cross-fitting folds (whole blocks each).
+    window : the observation window of the points (:class:`pipeline.learn.window.BlockWindow`), given to
+        every component (None: each component's own); each cross-fit also leaves its fold's blocks out.
 
     Fitted attributes: ``weights_`` (K,), ``estimators_`` (the components refitted on all points),
     ``cv_loglik_`` the cross-fitted mean log density per point at ``weights_`` (nats, density per m²).
     """
 
-    def __init__(self, estimators: tuple[PriorEstimator, ...] = (), spatial_block: float = 2000.0, n_folds: int = 4) -> None:
+    def __init__(self, estimators: tuple[PriorEstimator, ...] = (), spatial_block: float = 2000.0, n_folds: int = 4,
+                 window: BlockWindow | None = None) -> None:
         self.estimators = estimators
         self.spatial_block = spatial_block
         self.n_folds = n_folds
+        self.window = window
 
     def fit(self, X: np.ndarray, y: None = None, sample_weight: np.ndarray | None = None) -> MixturePrior:
         """Cross-fit every component on the blocks of X (N, 2, metres in the grid's CRS), choose the
@@ -79,13 +84,14 @@ class MixturePrior(BaseEstimator):
         fold = block_folds(pts, grid.bounds[:2], self.spatial_block, self.n_folds)
         if fold.max() < 1:
             raise ValueError(f"spatial_block: the points fill fewer than 2 blocks of {self.spatial_block:g} m")
-        logp = np.column_stack([cross_fitted(est, pts, fold, sw) for est in self.estimators])
+        components = [est if self.window is None else clone(est).set_params(window=self.window) for est in self.estimators]
+        logp = np.column_stack([cross_fitted(est, pts, fold, sw, self.spatial_block) for est in components])
         usable = np.isfinite(logp.max(axis=1))  # points no component reaches (off the grid, water) carry no information on w
         self.weights_ = simplex_weights(logp[usable], None if sw is None else sw[usable])
         with np.errstate(divide="ignore"):
             mix = logsumexp(logp[usable] + np.log(self.weights_), axis=1)
         self.cv_loglik_ = float(mix.mean() if sw is None else sw[usable] @ mix / sw[usable].sum())
-        self.estimators_ = [clone(est).fit(pts, sample_weight=sw) for est in self.estimators]
+        self.estimators_ = [clone(est).fit(pts, sample_weight=sw) for est in components]
         return self
 
     @property

@@ -108,7 +108,9 @@ class LearnReport:
             s = self.cv.summary()
             nf = s["folds"]
             lines.append(
-                f"spatial block CV: {nf} folds of {s['block_size_m']:g} m blocks, held-out nats/point over uniform "
+                f"spatial block CV: {nf} folds of {s['block_size_m']:g} m blocks"
+                + (" (each fold fitted with its held-out blocks unobserved)" if s["held_out_blocks_unobserved"] else "")
+                + ", held-out nats/point over uniform "
                 f"({s['uniform_nats']:.3f} nats/point); worst fold = fold {s['worst_fold'] + 1}:"
             )
             head = "".join(f"{f'fold {k + 1}':>9}" for k in range(nf))

@@ -23,6 +23,7 @@ from tqdm import tqdm
 from pipeline.learn.estimator import PriorEstimator, cross_fitted, with_features
 from pipeline.learn.kde import block_folds
 from pipeline.learn.sufficient import check_points
+from pipeline.learn.window import BlockWindow
 from pipeline.prior import TerrainPrior
 
 
@@ -35,6 +36,8 @@ class BackwardSelection(BaseEstimator):
     spatial_block : block side of the selection's folds, metres.
     n_folds : number of folds (whole blocks each; fewer when fewer blocks hold points).
     progress : show a tqdm bar over the candidate fits.
+    window : the observation window of the points (:class:`pipeline.learn.window.BlockWindow`), given to
+        every fit (None: the estimator's own); each cross-fit also leaves its fold's blocks out.
 
     Fitted attributes: ``features_`` (the kept feature names, in the estimator's order), ``fixed_``
     (features never dropped: those with structural zeros), ``path_`` (one dict per step: ``features``,
@@ -44,11 +47,12 @@ class BackwardSelection(BaseEstimator):
     """
 
     def __init__(self, estimator: PriorEstimator | None = None, spatial_block: float = 2000.0, n_folds: int = 5,
-                 progress: bool = False) -> None:
+                 progress: bool = False, window: BlockWindow | None = None) -> None:
         self.estimator = estimator
         self.spatial_block = spatial_block
         self.n_folds = n_folds
         self.progress = progress
+        self.window = window
 
     def fit(self, X: np.ndarray, y: None = None, sample_weight: np.ndarray | None = None) -> BackwardSelection:
         """Select on points X (N, 2, metres in the grid's CRS), weighted by ``sample_weight`` (N,) if given."""
@@ -58,7 +62,8 @@ class BackwardSelection(BaseEstimator):
             raise ValueError(f"spatial_block must be > 0 and n_folds >= 2, got {self.spatial_block}, {self.n_folds}")
         pts = check_points(X)
         sw = None if sample_weight is None else np.asarray(sample_weight, dtype=np.float64)
-        base = clone(self.estimator).set_params(defensive=None, temper=None)
+        estimator = self.estimator if self.window is None else clone(self.estimator).set_params(window=self.window)
+        base = clone(estimator).set_params(defensive=None, temper=None)
         full = clone(base).fit(pts, sample_weight=sw)
         names = [t.feature for t in full.terms_]
         self.fixed_ = tuple(t.feature for t in full.terms_ if t.zeros)
@@ -66,12 +71,12 @@ class BackwardSelection(BaseEstimator):
         if fold.max() < 1:
             raise ValueError(f"spatial_block: the points fill fewer than 2 blocks of {self.spatial_block:g} m")
         w = np.ones(len(pts)) if sw is None else sw
-        first = cross_fitted(base, pts, fold, sw)
+        first = cross_fitted(base, pts, fold, sw, self.spatial_block)
         usable = np.isfinite(first)  # off the grid or on a structural zero under every candidate alike
 
         def score(features: list[str], ld: np.ndarray | None = None) -> float:
             if ld is None:
-                ld = cross_fitted(with_features(base, features), pts, fold, sw)
+                ld = cross_fitted(with_features(base, features), pts, fold, sw, self.spatial_block)
             return float(w[usable] @ ld[usable] / w[usable].sum())
 
         kept, current = list(names), score(names, first)
@@ -93,7 +98,7 @@ class BackwardSelection(BaseEstimator):
                 kept.remove(best)
                 current = scores[best]
         self.features_, self.score_ = tuple(kept), current
-        self.estimator_ = with_features(self.estimator, self.features_).fit(pts, sample_weight=sw)
+        self.estimator_ = with_features(estimator, self.features_).fit(pts, sample_weight=sw)
         return self
 
     @property

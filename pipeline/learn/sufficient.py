@@ -12,7 +12,7 @@ combination, so the only approximation is r evaluated at that mean within one fi
 from __future__ import annotations
 
 import weakref
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -20,6 +20,7 @@ import numpy as np
 from pipeline.features.stack import FeatureStack
 from pipeline.gis.grid import NODATA_CODE
 from pipeline.learn.forms import BASIS_FORMS, basis, from_scale, knots, to_scale
+from pipeline.learn.window import BlockWindow, cell_blocks
 
 TermForm = Literal["categorical", "binned", "road", "kde", "linear", "increasing", "decreasing", "spline"]
 DISCRETE_FORMS = ("categorical", "binned")
@@ -130,7 +131,9 @@ class CellStats:
 
     ``index`` (m, T) level index per term (``NODATA_INDEX`` for no data); ``value`` (m, T) the
     area-weighted mean feature value in the combination for continuous terms (NaN for discrete);
-    ``area`` (m,) in m²; ``n_cells`` the grid's cell count.
+    ``area`` (m,) in m²; ``n_cells`` the grid's cell count. With ``block_size`` (metres) each
+    combination is split by block (``block`` (m,) its :func:`pipeline.learn.kde.block_ids`), so the
+    statistics of an observation window are a selection of rows (:meth:`within`).
     """
 
     terms: tuple[Term, ...]
@@ -139,6 +142,18 @@ class CellStats:
     area: np.ndarray
     cell_area: float
     n_cells: int
+    block: np.ndarray | None = None
+    block_size: float | None = None
+
+    def within(self, window: BlockWindow | None) -> CellStats:
+        """The statistics of the cells inside ``window`` (None: all of them)."""
+        if window is None or not window.unobserved:
+            return self
+        if self.block is None or self.block_size != window.size:
+            raise ValueError(f"window: blocks of {window.size:g} m need cell statistics split by such blocks "
+                             f"(these are split by {self.block_size})")
+        keep = ~np.isin(self.block, np.fromiter(window.unobserved, np.int64))
+        return replace(self, index=self.index[keep], value=self.value[keep], area=self.area[keep], block=self.block[keep])
 
     @property
     def total_area(self) -> float:
@@ -194,8 +209,10 @@ def _radix(terms: tuple[Term, ...]) -> np.ndarray:
     return np.concatenate([[1], np.cumprod(sizes[:-1])]).astype(np.int64), sizes
 
 
-def cell_stats(stack: FeatureStack, terms: tuple[Term, ...], rows_per_chunk: int | None = None) -> CellStats:
-    """One pass over the grid: area per combination of the terms' levels (see the module doc).
+def cell_stats(stack: FeatureStack, terms: tuple[Term, ...], rows_per_chunk: int | None = None,
+               block_size: float | None = None) -> CellStats:
+    """One pass over the grid: area per combination of the terms' levels (see the module doc), and
+    per block of ``block_size`` metres too when it is given.
 
     Continuous terms must already have their range set (:func:`with_range`).
     """
@@ -205,12 +222,21 @@ def cell_stats(stack: FeatureStack, terms: tuple[Term, ...], rows_per_chunk: int
     strides, sizes = _radix(terms)
     space = int(np.prod(sizes))
     h, w = stack.grid.shape
+    n_by = 1
+    if block_size is not None:  # the block is the key's top digit: bx * n_by + by
+        g = stack.grid
+        n_by = int(np.floor((g.bounds[3] - g.bounds[1]) / block_size)) + 1
+        n_blocks = (int(np.floor((g.bounds[2] - g.bounds[0]) / block_size)) + 1) * n_by
+        if space * float(n_blocks) >= 2.0**62:
+            raise ValueError(f"too many level combinations times {n_blocks} blocks; use wider fine bins or larger blocks")
+        space_blocks = space * n_blocks
     rows = rows_per_chunk or max(1, (1 << 22) // w)
     cont = [k for k, t in enumerate(terms) if t.form in CONTINUOUS_FORMS]
-    dense = space <= _DENSE_KEYS
+    keyspace = space if block_size is None else space_blocks
+    dense = keyspace <= _DENSE_KEYS
     if dense:
-        counts = np.zeros(space, dtype=np.int64)
-        sums = np.zeros((len(cont), space), dtype=np.float64)
+        counts = np.zeros(keyspace, dtype=np.int64)
+        sums = np.zeros((len(cont), keyspace), dtype=np.float64)
     else:
         parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
     arrays = [stack[t.feature].values for t in terms]
@@ -219,11 +245,14 @@ def cell_stats(stack: FeatureStack, terms: tuple[Term, ...], rows_per_chunk: int
         chunks = [a[r0 : r0 + rows].ravel() for a in arrays]
         for k, t in enumerate(terms):
             key += (t.index(chunks[k]) + 1) * strides[k]
+        if block_size is not None:
+            b = cell_blocks(stack.grid, block_size, r0, min(rows, h - r0))
+            key += (b // 1_000_003 * n_by + b % 1_000_003) * space
         vals = [np.nan_to_num(chunks[k].astype(np.float64)) for k in cont]
         if dense:
-            counts += np.bincount(key, minlength=space)
+            counts += np.bincount(key, minlength=keyspace)
             for j, v in enumerate(vals):
-                sums[j] += np.bincount(key, weights=v, minlength=space)
+                sums[j] += np.bincount(key, weights=v, minlength=keyspace)
         else:
             u, inv = np.unique(key, return_inverse=True)
             parts.append((u, np.bincount(inv), np.array([np.bincount(inv, weights=v) for v in vals]).reshape(len(cont), -1)))
@@ -236,19 +265,24 @@ def cell_stats(stack: FeatureStack, terms: tuple[Term, ...], rows_per_chunk: int
         keys, inv = np.unique(allk, return_inverse=True)
         n = np.bincount(inv, weights=np.concatenate([p[1] for p in parts])).astype(np.int64)
         s = np.array([np.bincount(inv, weights=np.concatenate([p[2][j] for p in parts])) for j in range(len(cont))]).reshape(len(cont), -1)
+    block = None
+    if block_size is not None:
+        compact, keys = keys // space, keys % space
+        block = compact // n_by * 1_000_003 + compact % n_by
     index = ((keys[:, None] // strides[None, :]) % sizes[None, :] - 1).astype(np.int64)
     value = np.full(index.shape, np.nan)
     for j, k in enumerate(cont):
         value[:, k] = np.where(index[:, k] >= 0, s[j] / n, np.nan)
-    return CellStats(terms, index, value, n * stack.grid.cell_area, stack.grid.cell_area, h * w)
+    return CellStats(terms, index, value, n * stack.grid.cell_area, stack.grid.cell_area, h * w, block,
+                     None if block_size is None else float(block_size))
 
 
-_PASSES: dict[int, tuple[weakref.ref, dict[tuple[Term, ...], tuple[tuple[np.ndarray, ...], CellStats]]]] = {}
-"""Grid passes per live stack (by id, dropped when the stack is collected): terms -> (arrays read, stats)."""
+_PASSES: dict[int, tuple[weakref.ref, dict[tuple[tuple[Term, ...], float | None], tuple[tuple[np.ndarray, ...], CellStats]]]] = {}
+"""Grid passes per live stack (by id, dropped when the stack is collected): (terms, block size) -> (arrays read, stats)."""
 
 
-def cached_cell_stats(stack: FeatureStack, terms: tuple[Term, ...]) -> CellStats:
-    """:func:`cell_stats`, run once per stack and terms: a refit on the same stack (CV folds, clones,
+def cached_cell_stats(stack: FeatureStack, terms: tuple[Term, ...], block_size: float | None = None) -> CellStats:
+    """:func:`cell_stats`, run once per stack, terms and ``block_size``: a refit on the same stack (CV folds, clones,
     other points) reuses the pass. A feature replaced in the stack (another array) runs it again;
     arrays changed in place are not detected."""
     terms = tuple(terms)
@@ -258,11 +292,11 @@ def cached_cell_stats(stack: FeatureStack, terms: tuple[Term, ...]) -> CellStats
         entry = (weakref.ref(stack, lambda _, k=key: _PASSES.pop(k, None)), {})
         _PASSES[key] = entry
     arrays = tuple(stack[t.feature].values for t in terms)
-    hit = entry[1].get(terms)
+    hit = entry[1].get((terms, block_size))
     if hit is not None and all(a is b for a, b in zip(hit[0], arrays, strict=True)):
         return hit[1]
-    cells = cell_stats(stack, terms)
-    entry[1][terms] = (arrays, cells)
+    cells = cell_stats(stack, terms, block_size=block_size)
+    entry[1][(terms, block_size)] = (arrays, cells)
     return cells
 
 

@@ -90,6 +90,7 @@ def test_learn_cross_validates_against_baselines(targets, tmp_path, capsys) -> N
                  "--hybrid-prior", str(tmp_path / "hybrid.tif")]) == 0
     printed = capsys.readouterr().out
     assert "spatial block CV: 3 folds" in printed and "hybrid beats per fold" in printed
+    assert "(each fold fitted with its held-out blocks unobserved)" in printed
     cv = json.loads(out.with_suffix(".diagnostics.json").read_text())["cv"]
     assert cv["gain_nats"]["terrain"]["pooled"] > 0.2
     assert TerrainPrior.read(tmp_path / "hybrid.tif").grid.shape == (300, 300)

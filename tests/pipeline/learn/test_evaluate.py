@@ -96,11 +96,12 @@ def test_block_cv_needs_enough_blocks() -> None:
 
 
 def test_cross_val_score_with_block_groups_equals_block_cv() -> None:
-    """scikit-learn's own CV on spatial-block groups gives block_cv's per-fold terrain scores."""
+    """scikit-learn's own CV on spatial-block groups gives block_cv's per-fold terrain scores when
+    the folds are fitted on the whole grid (``window=False``)."""
     stack = small_stack(60, 80)
     pts = TerrainPrior.from_array(TRUE_MODEL.evaluate(stack), stack.grid).sample(800, np.random.default_rng(4))
     est = PriorEstimator(features=stack, template=TRUE_MODEL)
-    res = block_cv(pts, est, n_folds=4, block_size=300.0, models=("uniform", "terrain"), progress=False)
+    res = block_cv(pts, est, n_folds=4, block_size=300.0, models=("uniform", "terrain"), progress=False, window=False)
     assert res.n_excluded == 0
     groups = block_ids(pts, stack.grid.bounds[:2], 300.0)
     with warnings.catch_warnings():

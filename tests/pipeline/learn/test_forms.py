@@ -130,9 +130,11 @@ def test_bad_weights_are_named(world, bad, name) -> None:
 
 
 def test_defensive_epsilon_finds_the_uniform_share(world) -> None:
-    """Points from the model mixed with 20% uniform (over the support): a clear ε (part of the
-    uniform share is absorbed by flatter fitted terms, so less than 0.2); points from the model
-    alone give an ε near 0."""
+    """Points from the model mixed with 20% uniform (over the support): a clear ε (most of the
+    uniform share is absorbed by flatter fitted terms, so well under 0.2); points from the model
+    alone give an ε near 0. (Before the inner fits left their fold's blocks out of the window, those
+    fits counted the held-out blocks as searched and empty and came out worse there, which inflated
+    ε on both data sets; this test's bounds were 0.04 < ε and clean ε < 0.03 then.)"""
     stack, prior = world
     rng = np.random.default_rng(2)
     support = (stack["water"].values == 0).astype(float)
@@ -140,10 +142,10 @@ def test_defensive_epsilon_finds_the_uniform_share(world) -> None:
     forms = {"road_distance": {"form": "linear", "scale": "log1p"}, "elevation": {"form": "spline", "knots": 4, "smoothing": 1.0}}
     est = PriorEstimator(features=stack, feature_names=("water", "road_distance", "elevation"), forms=forms,
                          template=TRUE_MODEL, defensive="cv", spatial_block=600.0).fit(pts)  # water: a structural zero
-    assert 0.04 < est.defensive_ < 0.3
+    assert 0.015 < est.defensive_ < 0.3
     clean = PriorEstimator(features=stack, feature_names=("water", "road_distance", "elevation"), forms=forms,
                            defensive="cv", spatial_block=600.0).fit(prior.sample(3000, rng))
-    assert clean.defensive_ < 0.03 and clean.defensive_ < est.defensive_ - 0.03
+    assert clean.defensive_ < 0.003 and clean.defensive_ < est.defensive_ / 10
     # the prior is the mixture: a density on the grid, zero on water still
     d = est.prior_.density
     assert np.isclose(d.sum() * stack.grid.cell_area, 1.0) and np.all(d[stack["water"].values == 1] == 0)

@@ -11,7 +11,14 @@ from scipy.optimize import minimize_scalar
 from sklearn.base import clone
 
 from pipeline.features.stack import Feature
-from pipeline.learn import MixturePrior, PriorEstimator, simplex_weights
+from pipeline.learn import (
+    BlockWindow,
+    MixturePrior,
+    PriorEstimator,
+    block_folds,
+    block_ids,
+    simplex_weights,
+)
 from pipeline.prior.terrain import TerrainPrior
 from tests.pipeline.learn_synth import small_stack
 
@@ -82,7 +89,15 @@ def test_the_weights_are_recovered_and_the_mixture_beats_each_component_held_out
     d = prior.density_at(test[:, 0], test[:, 1])
     np.testing.assert_allclose(np.log(d), mix.score_samples(test), rtol=1e-5)
     assert float(np.sum(prior.density) * stack.grid.cell_area) == pytest.approx(1.0, rel=1e-5)
-    assert mix.cv_loglik_ < mix.score(train)  # cross-fitted densities score below in-sample ones
+    # cross-fitted by hand: each component fitted without a fold's blocks, those blocks outside its window
+    fold = block_folds(train, stack.grid.bounds[:2], 400.0, 4)
+    by_hand = np.empty((len(train), 2))
+    for f in range(4):
+        out = fold == f
+        window = BlockWindow(400.0, set(block_ids(train[out], stack.grid.bounds[:2], 400.0).tolist()))
+        for k, est in enumerate(components(stack)):
+            by_hand[out, k] = est.set_params(window=window).fit(train[~out]).score_samples(train[out])
+    assert mix.cv_loglik_ == pytest.approx(float(np.mean(np.logaddexp(*(np.log(mix.weights_) + by_hand).T))), abs=1e-9)
 
 
 def test_a_component_without_information_gets_almost_no_weight(world) -> None:

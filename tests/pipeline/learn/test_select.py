@@ -15,7 +15,14 @@ from pipeline.cli import main
 from pipeline.config.learn import load_learn_config
 from pipeline.config.region import ConfigError
 from pipeline.features.stack import Feature
-from pipeline.learn import BackwardSelection, PriorEstimator, block_cv, block_ids, with_selection
+from pipeline.learn import (
+    BackwardSelection,
+    BlockWindow,
+    PriorEstimator,
+    block_cv,
+    block_ids,
+    with_selection,
+)
 from pipeline.prior.likelihood import CategoricalLikelihood, LikelihoodModel
 from pipeline.prior.terrain import TerrainPrior
 from tests.pipeline.gis_helpers import write_config
@@ -47,11 +54,13 @@ def estimator(stack, names=("water", "road_distance", "noise")) -> PriorEstimato
 
 
 def by_hand(stack, pts, names) -> float:
-    """Pooled held-out mean log density over GroupKFold folds of the blocks, fitted fold by fold."""
+    """Pooled held-out mean log density over GroupKFold folds of the blocks, fitted fold by fold with
+    the held-out blocks outside the observation window."""
     groups = block_ids(pts, stack.grid.bounds[:2], BLOCK_M)
     ld = np.empty(len(pts))
     for train, test in GroupKFold(n_splits=3).split(pts, groups=groups):
-        fitted = estimator(stack, names).fit(pts[train])
+        window = BlockWindow(BLOCK_M, set(groups[test].tolist()))
+        fitted = estimator(stack, names).set_params(window=window).fit(pts[train])
         ld[test] = np.log(fitted.prior_.density_at(pts[test, 0], pts[test, 1]))
     ok = np.isfinite(ld)
     return float(ld[ok].mean())
@@ -90,7 +99,9 @@ def test_nested_in_the_outer_cv_each_fold_selects_on_its_own_training_points(wor
     assert nested.models == ("uniform", "terrain", "selected") and len(nested.extra["selected_features"]) == 2
     for j, test in enumerate(cv.extra["test_index"]):
         train = np.concatenate([i for k, i in enumerate(cv.extra["test_index"]) if k != j])
-        alone = BackwardSelection(est, spatial_block=BLOCK_M, n_folds=3).fit(pts[train])
+        window = cv.extra["windows"][j]
+        assert window == BlockWindow(BLOCK_M, set(block_ids(pts[test], stack.grid.bounds[:2], BLOCK_M).tolist()))
+        alone = BackwardSelection(est, spatial_block=BLOCK_M, n_folds=3, window=window).fit(pts[train])
         assert nested.extra["selected_features"][j] == list(alone.features_)
         assert nested.scores[j, 2] == pytest.approx(alone.score_samples(pts[test]).mean(), abs=1e-12)
 
