@@ -62,6 +62,7 @@ class CVResult:
             "n_points": self.n_points,
             "n_excluded": self.n_excluded,
             "n_test_per_fold": self.n_test.tolist(),
+            "n_blocks_per_fold": [len(b) for b in self.extra["test_blocks"]] if "test_blocks" in self.extra else None,
             "kde_bandwidth_m": self.bandwidths.tolist(),
             "uniform_nats": float(self.scores[:, self.models.index("uniform")].mean()),
             # True: each fold's fits left its held-out blocks out of their observation window (pipeline.learn.window)
@@ -267,5 +268,8 @@ def block_cv(
         int(len(points)), int(len(points) - usable.sum()),
         # which points each fold held out (indices into ``points``), so peers can be scored on the same folds
         {"test_index": [np.flatnonzero(usable)[te] for te in cv["indices"]["test"]],
+         # which blocks each fold held out: a fold of one town block and a fold of many scattered blocks
+         # test different things, and the scores alone do not say which a fold was
+         "test_blocks": [np.unique(groups[te]) for te in cv["indices"]["test"]],
          "windows": [e.window_ for e in cv["estimator"]]},
     )

@@ -116,6 +116,8 @@ class LearnReport:
             head = "".join(f"{f'fold {k + 1}':>9}" for k in range(nf))
             lines.append(f"  {'model':<10}{'pooled':>9}{'worst':>9}" + head)
             lines.append(f"  {'points':<10}{'':>18}" + "".join(f"{n:>9d}" for n in s["n_test_per_fold"]))
+            if s["n_blocks_per_fold"] is not None:
+                lines.append(f"  {'blocks':<10}{'':>18}" + "".join(f"{n:>9d}" for n in s["n_blocks_per_fold"]))
             for m, gsum in s["gain_nats"].items():
                 if m == "uniform":
                     continue

@@ -92,6 +92,8 @@ def test_learn_cross_validates_against_baselines(targets, tmp_path, capsys) -> N
     assert "spatial block CV: 3 folds" in printed and "hybrid beats per fold" in printed
     assert "(each fold fitted with its held-out blocks unobserved)" in printed
     cv = json.loads(out.with_suffix(".diagnostics.json").read_text())["cv"]
+    blocks = next(line for line in printed.splitlines() if line.strip().startswith("blocks")).split()[1:]
+    assert [int(b) for b in blocks] == cv["n_blocks_per_fold"] and len(blocks) == 3
     assert cv["gain_nats"]["terrain"]["pooled"] > 0.2
     assert TerrainPrior.read(tmp_path / "hybrid.tif").grid.shape == (300, 300)
 

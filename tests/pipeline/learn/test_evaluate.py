@@ -86,6 +86,12 @@ def test_block_cv_scores_models_on_the_same_held_out_blocks() -> None:
     for m in s["gain_nats"]:
         g = s["gain_nats"][m]
         assert g["min"] <= g["mean"] <= g["max"] and len(g["per_fold"]) == 4
+    # the blocks each fold held out, against the block of every held-out point counted by hand
+    x0, y0 = stack.grid.bounds[:2]
+    all_pts = np.vstack([pts, wet])
+    by_hand = [sorted({(int((x - x0) // 300.0), int((y - y0) // 300.0)) for x, y in all_pts[te]}) for te in res.extra["test_index"]]
+    assert s["n_blocks_per_fold"] == [len(b) for b in by_hand]
+    assert sum(s["n_blocks_per_fold"]) == len({b for fold in by_hand for b in fold})  # no block in two folds
 
 
 def test_block_cv_needs_enough_blocks() -> None:
