@@ -2,7 +2,8 @@
 
 Imports every ``bench/bench_<name>.py`` (or only the ``names`` given, with or without the ``bench_``
 prefix), calls its ``run(quick)``, merges the results into ``bench/results.json`` (results of
-benchmarks not run this time are kept; machine and date recorded per benchmark) and writes the
+benchmarks not run this time are kept, as are those another run writes meanwhile; machine and date recorded
+per benchmark) and writes the
 summary tables to ``bench/results.md``.
 
 A benchmark's ``"table"`` is a list of rows: dicts (columns = their keys, in first-seen order),
@@ -108,8 +109,6 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         parser.error(f"no benchmark {unknown}; have {available()}")
 
-    results = json.loads(RESULTS_JSON.read_text()) if RESULTS_JSON.exists() else {}
-    results.setdefault("benchmarks", {})
     failed = []
     info = machine()
     for name in names:
@@ -126,7 +125,9 @@ def main(argv: list[str] | None = None) -> int:
             failed.append(name)
             print(entry["error"], file=sys.stderr)
         entry["seconds"] = time.perf_counter() - t
-        results["benchmarks"][name] = entry
+        # read just before writing, so that a benchmark run in another process meanwhile keeps its entry
+        results = json.loads(RESULTS_JSON.read_text()) if RESULTS_JSON.exists() else {}
+        results.setdefault("benchmarks", {})[name] = entry
         results["updated"] = entry["date"]
         # write after each benchmark so a later failure or interrupt keeps the finished ones
         with atomic_paths(RESULTS_JSON, RESULTS_MD) as (tmp_json, tmp_md):

@@ -62,3 +62,16 @@ def test_failure_is_recorded_and_others_kept(bench_dir, monkeypatch):
 def test_unknown_name(bench_dir):
     with pytest.raises(SystemExit):
         bench_run.main(["nosuch"])
+
+
+def test_a_benchmark_written_by_another_run_meanwhile_is_kept(bench_dir, monkeypatch):
+    def slow(quick=False):
+        # another `python -m bench.run` finishes while this one runs
+        (bench_dir / "results.json").write_text(json.dumps({"benchmarks": {"other": {"date": "now", "result": {"table": []}}}}))
+        return {"table": ["done"]}
+
+    fake_bench(monkeypatch, bench_dir, "mine", slow)
+    (bench_dir / "results.json").write_text(json.dumps({"benchmarks": {"older": {"date": "then", "result": {"table": []}}}}))
+    assert bench_run.main(["mine"]) == 0
+    results = json.loads((bench_dir / "results.json").read_text())
+    assert set(results["benchmarks"]) == {"other", "mine"}
