@@ -89,6 +89,21 @@ def swellendam():
     return cfg, learn, stack, pts
 
 
+def fitted_forms(cfg, learn, stack, features, **params):
+    """Our fitted-forms estimator on ``features`` (the config's forms; ε and τ cross-fitted on 2 km blocks);
+    ``params``: further PriorEstimator parameters (a window, say)."""
+    from pipeline.learn.estimator import PriorEstimator
+
+    return PriorEstimator(features=stack, template=cfg.model, feature_names=features,
+                          forms={k: v for k, v in learn.forms.items() if k in features},
+                          defensive="cv", temper="cv", spatial_block=BLOCK_M, **params)
+
+
+def log_grid_area(grid) -> float:
+    """Minus the log of the uniform density on ``grid`` (m²): what a gain over uniform adds to a log density."""
+    return float(np.log(grid.width * grid.height * grid.cell_area))
+
+
 def ours(cfg, learn, stack, pts) -> tuple[dict, list, dict]:
     """block_cv of our models and the mixture's outer CV on the same folds; the folds' held-out indices;
     the mixture's weights per fold."""
@@ -97,9 +112,7 @@ def ours(cfg, learn, stack, pts) -> tuple[dict, list, dict]:
     from pipeline.learn.evaluate import block_cv
 
     def forms(features):
-        return PriorEstimator(features=stack, template=cfg.model, feature_names=features,
-                              forms={k: v for k, v in learn.forms.items() if k in features},
-                              defensive="cv", temper="cv", spatial_block=BLOCK_M)
+        return fitted_forms(cfg, learn, stack, features)
 
     runs = {
         "terrain (template)": PriorEstimator(features=stack, template=cfg.model),
@@ -154,16 +167,11 @@ model that has seen that fold reaches there."""
 def in_sample(cfg, learn, stack, pts, index) -> np.ndarray:
     """Per fold, the gain of our 8-feature model (ε and τ cross-fitted) fitted on all points, at that fold's
     points (``index``: into ``pts``, :func:`pipeline.learn.evaluate.block_cv`'s held-out indices)."""
-    from pipeline.learn.estimator import PriorEstimator
-
-    est = PriorEstimator(features=stack, template=cfg.model, feature_names=learn.features,
-                         forms={k: v for k, v in learn.forms.items() if k in learn.features},
-                         defensive="cv", temper="cv", spatial_block=BLOCK_M)
+    est = fitted_forms(cfg, learn, stack, learn.features)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         est.fit(pts)
-    g = stack.grid
-    return np.array([est.score_samples(pts[test]).mean() + np.log(g.width * g.height * g.cell_area) for test in index])
+    return np.array([est.score_samples(pts[test]).mean() + log_grid_area(stack.grid) for test in index])
 
 
 def maxent(stack, pts, index, variants: dict, names: tuple[str, ...], n_background: int, windowed: bool, seed: int = 0,
@@ -192,30 +200,31 @@ def maxent(stack, pts, index, variants: dict, names: tuple[str, ...], n_backgrou
     at = np.column_stack([np.nan_to_num(np.asarray(samples[f], dtype=np.float64)) for f in names])
     row, col, _ = grid.cell_index(pts[:, 0], pts[:, 1])
     flat = row * grid.width + col
-    log_uniform = -np.log(dry.size * grid.cell_area)
     out = {}
     for vname, kw in variants.items():
         t = time.process_time()
         gains = []
+        model = None
         for test, bg in zip(index, backgrounds, strict=True):
-            train = np.concatenate(index) if in_sample else np.setdiff1d(np.concatenate(index), test)
-            x = np.vstack([at[train], bg])
-            y = np.r_[np.ones(len(train)), np.zeros(len(bg))]
-            model = elapid.MaxentModel(transform="raw", n_cpus=1, **kw)
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                model.fit(x, y, categorical=cat)
-                # dry cells only: water is the structural zero (and a category Maxent never saw)
-                raw = np.zeros(len(cells))
-                raw[dry_idx] = np.concatenate([model.predict(cells[dry_idx[s : s + 200_000]])
-                                               for s in range(0, len(dry_idx), 200_000)])
-                raw_bg = model.predict(bg)
+            if model is None or not in_sample:  # in-sample: one fit on every point, scored per fold
+                train = np.concatenate(index) if in_sample else np.setdiff1d(np.concatenate(index), test)
+                x = np.vstack([at[train], bg])
+                y = np.r_[np.ones(len(train)), np.zeros(len(bg))]
+                model = elapid.MaxentModel(transform="raw", n_cpus=1, **kw)
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    model.fit(x, y, categorical=cat)
+                    # dry cells only: water is the structural zero (and a category Maxent never saw)
+                    raw = np.zeros(len(cells))
+                    raw[dry_idx] = np.concatenate([model.predict(cells[dry_idx[s : s + 200_000]])
+                                                   for s in range(0, len(dry_idx), 200_000)])
+                    raw_bg = model.predict(bg)
             fold = []
             for score in outputs(np.clip(raw, 0, None), raw_bg, model.tau).values():
                 dens = score / (score.sum() * grid.cell_area)
                 with np.errstate(divide="ignore"):
                     ld = np.log(dens[flat[test]])
-                fold.append(float(ld.mean() - log_uniform) if np.all(np.isfinite(ld)) else -np.inf)
+                fold.append(float(ld.mean() + log_grid_area(grid)) if np.all(np.isfinite(ld)) else -np.inf)
             gains.append(fold)
         for j, output in enumerate(OUTPUTS):
             out[vname + OUTPUTS[output]] = np.array(gains)[:, j]

@@ -21,7 +21,15 @@ import warnings
 
 import numpy as np
 
-from bench.bench_maxent import BLOCK_M, DATA, FOLDS, in_sample, swellendam
+from bench.bench_maxent import (
+    BLOCK_M,
+    DATA,
+    FOLDS,
+    fitted_forms,
+    in_sample,
+    log_grid_area,
+    swellendam,
+)
 
 TAUS = tuple(float(round(t, 1)) for t in np.arange(0.3, 1.21, 0.1))
 EPSILONS = (0.0, 0.01, 0.1)
@@ -37,11 +45,11 @@ def held_out_gain(r: np.ndarray, grid, pts: np.ndarray, tau: float, eps: float) 
     prior = TerrainPrior.from_array(calibrate(np.array(r, dtype=np.float64), tau, eps), grid)
     with np.errstate(divide="ignore"):
         ld = np.log(prior.density_at(pts[:, 0], pts[:, 1]))
-    return float(ld.mean() + np.log(grid.width * grid.height * grid.cell_area))
+    return float(ld.mean() + log_grid_area(grid))
 
 
 def run(quick: bool = False) -> dict:
-    from pipeline.learn import BlockWindow, block_ids
+    from pipeline.learn import BlockWindow
     from pipeline.learn.estimator import PriorEstimator
     from pipeline.learn.evaluate import block_cv
 
@@ -51,9 +59,9 @@ def run(quick: bool = False) -> dict:
     grid = stack.grid
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        index = block_cv(pts, PriorEstimator(features=stack, template=cfg.model), FOLDS, BLOCK_M, None,
-                         ("uniform", "terrain"), progress=False).extra["test_index"]
-    blocks = [np.unique(block_ids(pts[test], grid.bounds[:2], BLOCK_M)) for test in index]
+        cv = block_cv(pts, PriorEstimator(features=stack, template=cfg.model), FOLDS, BLOCK_M, None,
+                      ("uniform", "terrain"), progress=False)
+    index, blocks = cv.extra["test_index"], cv.extra["test_blocks"]
     everything = np.concatenate(index)
     folds = []
     # quick: only the fold with the most blocks, the outlying one, and no in-sample fit
@@ -61,16 +69,13 @@ def run(quick: bool = False) -> dict:
     for j in chosen_folds:
         test = index[j]
         train = np.setdiff1d(everything, test)
-        est = PriorEstimator(features=stack, template=cfg.model, feature_names=learn.features,
-                             forms={k: v for k, v in learn.forms.items() if k in learn.features},
-                             defensive="cv", temper="cv", spatial_block=BLOCK_M,
-                             window=BlockWindow(BLOCK_M, frozenset(blocks[j].tolist())))
+        est = fitted_forms(cfg, learn, stack, learn.features, window=BlockWindow(BLOCK_M, frozenset(blocks[j].tolist())))
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             est.fit(pts[train])
         r = est.model_.evaluate(stack)
         at_cv = held_out_gain(r, grid, pts[test], est.temper_, est.defensive_)
-        own = float(est.score_samples(pts[test]).mean() + np.log(grid.width * grid.height * grid.cell_area))
+        own = float(est.score_samples(pts[test]).mean() + log_grid_area(grid))
         assert abs(at_cv - own) < 1e-9, (at_cv, own)  # the sweep scores the estimator's own density
         sweep = {(t, e): held_out_gain(r, grid, pts[test], t, e) for t in TAUS for e in EPSILONS}
         best = max(sweep, key=sweep.get)
