@@ -42,8 +42,9 @@ demo: prior
 	$(VENV)/bin/terrain-track show --prior $(OUT)/prior.tif --reports $(OUT)/reports.csv --tracks $(OUT)/tracks.gpkg --truth $(OUT)/targets.csv --png $(OUT)/tracks.png --html $(OUT)/tracks.html --vector terrain_data/region.gpkg:roads --vector terrain_data/region.gpkg:lakes=water
 	$(VENV)/bin/terrain-track experiment --prior $(OUT)/prior.tif --datasets 28 --reports 100 --tau -9:3:0.25 --out $(OUT)/experiment
 
+# One pytest worker per core (pytest-xdist); worksteal evens out the long notebook and CLI tests.
 test: setup
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n auto --dist worksteal
 
 bench: setup
 	$(PY) -m bench.run
