@@ -1,5 +1,5 @@
 """Helpers shared by the pipeline and the tracker: atomic output commits, a command's checked outputs,
-the command-line conventions, the Dask client, lazy package exports, the interactive map builder."""
+the command-line conventions, the one CSV table reader, the Dask client, lazy package exports, the interactive map builder."""
 
 from common.exports import lazy_exports
 
@@ -22,6 +22,8 @@ _EXPORTS = {
     "get_client": "dask",
     "using_client": "dask",
     "lazy_exports": "exports",
+    "numeric_column": "tables",
+    "read_csv_table": "tables",
     "LeafletMap": "maps",
     "covariance_popup": "maps",
     "density_map": "maps",

@@ -58,6 +58,9 @@ def region(tmp_path_factory) -> Path:
     (d / "empty.csv").write_bytes(b"")
     pd.DataFrame({"x": [0.0], "y": [0.0], "time": [0.0], "cov_xx": [1.0], "cov_xy": [0.0],
                   "cov_yy": [1.0]}).to_csv(d / "far.csv", index=False)
+    (d / "header.csv").write_text("x,y\n")
+    pd.DataFrame({"x": [20.4, 20.5], "y": [-34.0, -34.1]}).to_csv(d / "lonlat.csv", index=False)
+    pd.DataFrame({"x": xy[:3, 0], "y": xy[:3, 1], "w": ["1", "two", "3"]}).to_csv(d / "textweights.csv", index=False)
     (d / "link.tif").symlink_to(d / "dem.tif")
     (d / "folder").mkdir()
     return d
@@ -113,6 +116,20 @@ CASES = {
                                                     "--out", "{d}/new.gpkg"], 1, "far.csv: reports at indices"),
     "learn on a multi-layer targets file": (PRIOR, ["learn", "{d}/region.toml", "--targets", "{d}/targets.gpkg", "--no-cv",
                                                     "--out", "{d}/model.toml"], 1, "--layer"),
+    "learn on a binary CSV": (PRIOR, ["learn", "{d}/region.toml", "--targets", "{d}/binary.csv", "--no-cv",
+                                      "--out", "{d}/model.toml"], 1, "binary.csv: not a text CSV of target points"),
+    "learn on an empty CSV": (PRIOR, ["learn", "{d}/region.toml", "--targets", "{d}/empty.csv", "--no-cv",
+                                      "--out", "{d}/model.toml"], 1, "empty.csv: empty file"),
+    "learn on a header without rows": (PRIOR, ["learn", "{d}/region.toml", "--targets", "{d}/header.csv", "--no-cv",
+                                               "--out", "{d}/model.toml"], 1, "header.csv: no data rows"),
+    "learn on lon/lat targets": (PRIOR, ["learn", "{d}/region.toml", "--targets", "{d}/lonlat.csv", "--no-cv",
+                                         "--out", "{d}/model.toml"], 1,
+                                 "lonlat.csv: none of its 2 target points lies on the grid"),
+    "learn: --layer of a CSV": (PRIOR, ["learn", "{d}/region.toml", "--targets", "{d}/targets.csv", "--layer", "a",
+                                        "--no-cv", "--out", "{d}/model.toml"], 1, "targets.csv: --layer"),
+    "learn: text weights": (PRIOR, ["learn", "{d}/region.toml", "--targets", "{d}/textweights.csv", "--weights", "w",
+                                    "--no-cv", "--out", "{d}/model.toml"], 1,
+                            "column 'w' (--weights): non-numeric values on data rows [1]"),
     # usage errors exit 2
     "unknown option": (PRIOR, ["build", "{d}/region.toml", "--out", "{d}/p.tif", "--bogus"], 2, "unrecognized"),
     "bad choice": (TRACK, ["run", "--prior", "{d}/prior.tif", "--reports", "{d}/reports.csv", "--variant", "XX",
@@ -154,7 +171,8 @@ def test_bad_input_gives_an_error_line_and_leaves_everything_as_it_was(region: P
     check_case(region, case, False, capsys)
 
 
-SUBPROCESS_CASES = ["build over the DEM", "run: assignments under a file", "run on a binary CSV", "bad choice"]
+SUBPROCESS_CASES = ["build over the DEM", "run: assignments under a file", "run on a binary CSV", "learn on an empty CSV",
+                    "bad choice"]
 
 
 @pytest.mark.parametrize("case", [pytest.param(c, marks=[] if c in SUBPROCESS_CASES else pytest.mark.slow) for c in CASES])

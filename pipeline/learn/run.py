@@ -18,6 +18,7 @@ import numpy as np
 from sklearn.base import clone
 
 from common.atomic import atomic_paths
+from common.tables import numeric_column, read_csv_table
 from pipeline.build.region import build_features, unused_features
 from pipeline.config.learn import LearnConfig, load_learn_config
 from pipeline.config.region import RegionConfig
@@ -213,10 +214,13 @@ def read_target_weights(path: str | Path, grid, layer: str | None, column: str) 
     them), validated by :func:`pipeline.learn.sufficient.check_weights`."""
     path = Path(path)
     if path.suffix.lower() == ".csv":
-        table = np.genfromtxt(path, delimiter=",", names=True, dtype=np.float64, encoding="utf-8")
-        if column not in (table.dtype.names or ()):
-            raise ValueError(f"{path}: no column {column!r} (--weights); the CSV has {list(table.dtype.names or ())}")
-        values = np.atleast_1d(table[column])
+        table = read_csv_table(path, "target points")
+        if column not in table.columns:
+            raise ValueError(f"{path}: no column {column!r} (--weights); the CSV has {list(table.columns)}")
+        values = numeric_column(table, column)
+        text = np.flatnonzero(np.isnan(values) & table[column].notna().to_numpy())
+        if text.size:
+            raise ValueError(f"{path}: column {column!r} (--weights): non-numeric values on data rows {text[:10].tolist()} (0-based)")
     else:
         values = read_vector(LayerSpec("targets", path, "vector", layer=layer), grid, [column]).attributes[column]
         try:

@@ -19,6 +19,7 @@ import shapely
 from pyogrio import raw
 
 from common.atomic import atomic_paths
+from common.tables import read_csv_table
 from tracker.io.columns import COV_COLUMNS, cov_columns, covs_from_columns
 from tracker.types.reports import Reports
 
@@ -33,7 +34,7 @@ def read_reports(path: str | Path, layer: str | None = None) -> tuple[Reports, s
         raise ValueError(f"{path}: no such file")
     suffix = path.suffix.lower()
     if suffix == ".csv":
-        table, crs = _read_csv(path, "reports"), None
+        table, crs = read_csv_table(path, "reports"), None
     elif suffix in (".gpkg", ".geojson", ".json", ".shp", ".fgb"):
         table, crs = _read_vector(path, layer)
     else:
@@ -57,27 +58,6 @@ def read_reports(path: str | Path, layer: str | None = None) -> tuple[Reports, s
     except ValueError as exc:
         raise ValueError(f"{path}: {exc} (indices are 0-based data rows)") from exc
     return reports, crs
-
-
-def _read_csv(path: Path, what: str) -> pd.DataFrame:
-    """A CSV file as a table; ``ValueError`` naming the file (``what`` it should hold) when it is missing,
-    empty, binary (a NUL byte in its first 8 KiB, or not UTF-8) or not CSV."""
-    try:
-        with open(path, "rb") as f:
-            binary = b"\0" in f.read(8192)
-        if binary:
-            raise ValueError(f"{path}: not a text CSV of {what} (binary file: it holds NUL bytes)")
-        return pd.read_csv(path)
-    except FileNotFoundError:
-        raise ValueError(f"{path}: no such file") from None
-    except IsADirectoryError:
-        raise ValueError(f"{path}: is a folder, not a CSV of {what}") from None
-    except UnicodeDecodeError as exc:
-        raise ValueError(f"{path}: not a text CSV of {what} (byte {exc.start} is not UTF-8; binary file?)") from None
-    except pd.errors.EmptyDataError:
-        raise ValueError(f"{path}: empty file; a CSV of {what} needs a header row") from None
-    except pd.errors.ParserError as exc:
-        raise ValueError(f"{path}: not a readable CSV of {what} ({str(exc).strip()})") from None
 
 
 def _read_vector(path: Path, layer: str | None) -> tuple[pd.DataFrame, str | None]:
@@ -125,7 +105,7 @@ def read_targets(path: str | Path) -> np.ndarray:
     """True target positions (T, 2) metres from a CSV written by :func:`write_targets` (columns ``x``, ``y``).
     Raises ``ValueError`` naming the file and what is missing or not numeric."""
     path = Path(path)
-    table = _read_csv(path, "true targets")
+    table = read_csv_table(path, "true targets")
     missing = [c for c in ("x", "y") if c not in table.columns]
     if missing:
         raise ValueError(f"{path}: missing target columns {missing} (need ['x', 'y'])")
