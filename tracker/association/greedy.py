@@ -80,6 +80,7 @@ from tracker.association.walk import (
     least_k,
     link_pairs,
     needed_pairs,
+    no_grid,
     pair_geometry,
     pair_geometry_parallel,
     pair_scores,
@@ -486,7 +487,7 @@ class Tracker:
         istate = np.array([H.n, 0, self.n_reports_, 0, min(H.n, LOW_C)], dtype=np.int64)
         fstate = np.array([floor, 0.0, self._low_min(low, istate[4])])
         cfg = self._cfg()
-        hgrid = None if self._grid is None else self._grid.arrays
+        hgrid = no_grid() if self._grid is None else self._grid.arrays
         widened = np.zeros(1, np.int64)  # the gates walk() widens itself
         tm["setup"] += clock() - t1
         pool.add(p_rep, p_h, self._score(p_rep, p_h, blk, hyp, cfg), hyp, istate, blk, 0)

@@ -37,6 +37,12 @@ DONE, CONFLICT, WIDEN = 0, 1, 2
 _LOG_2PI = math.log(2.0 * math.pi)
 
 
+def no_grid() -> tuple:
+    """A hypothesis grid that holds nothing, of the same types as a real one (``_HypothesisGrid.arrays``):
+    :func:`walk` takes either, so numba compiles it once, not once per case."""
+    return (np.zeros(0), *(np.zeros(0, np.int64) for _ in range(4)), np.zeros(0))
+
+
 @njit(cache=True, inline="always")
 def _pos_at(Hm, Hc, Ht, h, t, motion, q):
     """Position mean and covariance (x, y, c00, c01, c11) of hypothesis h predicted to time t (CV: entries
@@ -459,8 +465,8 @@ def _decide_now(j, nc, blk, pool, hyp, istate, fstate, cfg):
 def walk(start, blk, pool, hyp, istate, fstate, cfg, hgrid, widened):
     """Decide reports start.. until one conflicts with an earlier decision of the block or needs a
     wider gate that :func:`_widen_here` cannot settle; returns (that report, CONFLICT or WIDEN) or
-    (m, DONE). ``hgrid``: the static hypotheses' grid, or None; ``widened[0]`` counts the gates
-    widened here."""
+    (m, DONE). ``hgrid``: the static hypotheses' grid, or :func:`no_grid`; ``widened[0]`` counts the
+    gates widened here."""
     p_h, p_score, p_mean, p_cov, p_logc, p_next, head = pool
     dirty = hyp[5]
     conflicted = blk[5]
@@ -505,7 +511,7 @@ def _widen_here(j, blk, hyp, istate, fstate, cfg, hgrid):
     integral is needed: TT, static, S = e^{-nτ}, and every hypothesis in that gate below the bound
     (ln G - ln c) + ln r_max < ln ∫G(z,V)r - τ (``needed_pairs``' test, in its order of operations),
     so each scores -inf as ``Tracker._score`` would score it. Returns whether it decided."""
-    if hgrid is None:
+    if hgrid[0].shape[0] == 0:
         return False
     terrain, log_rmax, s_kind, tau = cfg[1], cfg[2], cfg[3], cfg[4]
     if not terrain or s_kind != KIND_EXP:

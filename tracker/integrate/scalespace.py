@@ -151,7 +151,7 @@ class Pyramid:
                     else:
                         ps, ph, po = p.scale[-1], p.step[-1], p.u0[-1]
                         coef = _untile(p.coef[p.offset[-2] :], (int(p.nv[-1]), int(p.nu[-1])))
-                    coef = _prefilter(_smooth(_node_values(coef), po, ph, u, v, np.sqrt(s * s - ps * ps)))
+                    coef = _prefilter(_smooth(_node_values(np.ascontiguousarray(coef)), po, ph, u, v, np.sqrt(s * s - ps * ps)))
                 new.append((s, h, origin, coef.shape, coef))
                 k += 1
                 if s >= top_scale:

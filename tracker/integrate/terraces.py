@@ -447,7 +447,8 @@ def integrate_terraces(
     offsets, t, tbar, eta = strip_tables(counts)
     order = locality_order(prior.grid.shape, uc, vc, cuu, cvv)
     args = [a[order] for a in (uc, vc, cuu, cuv, cvv, strips, offsets[which])]
-    sat = np.asarray(prior.sat2 if squared else prior.sat)
+    sat = np.asarray(prior.sat2 if squared else prior.sat).view()
+    sat.flags.writeable = False  # the kernels' one signature, whether or not the prior's table is read-only
     out = np.empty(uc.shape[0])
     if scheme == "adaptive":
         _terrace_kernel(sat, *args, int(n_terraces), np.sqrt(-2.0 * np.log1p(-mass)), t, tbar, eta, out)

@@ -447,3 +447,16 @@ def test_gates_widened_inside_the_walk_decide_as_the_block_gate_path(tau, gamma,
     np.testing.assert_array_equal(fast.hypotheses_.log_c, slow.hypotheses_.log_c)
     np.testing.assert_array_equal(fast.hypotheses_.means, slow.hypotheses_.means)
     assert fast.stats_["widened"] == slow.stats_["widened"] > len(calls) > 0
+
+
+def test_walk_compiles_once_for_static_and_moving_targets():
+    """The walk gets the same argument types with and without the static hypotheses' grid
+    (``walk.no_grid``), so numba compiles it once: a second signature costs minutes on a cold cache."""
+    from tracker.association import walk as walk_module
+
+    prior = cos_prior()
+    reports, _ = scenario(5, n_targets=20, n_reports=40)
+    static = associate(prior, reports, "TT", tau=2.0, block=8)
+    moving = associate(prior, reports, "TT", tau=2.0, motion=ConstantVelocity(q=0.05, velocity_std=10.0), block=8)
+    assert static.assignments.size == moving.assignments.size == 40
+    assert len(walk_module.walk.signatures) == 1, walk_module.walk.signatures
