@@ -10,6 +10,8 @@ _EXPORTS = {
     "EXIT_OK": "cli",
     "EXIT_USAGE": "cli",
     "attach_negative_values": "cli",
+    "count": "cli",
+    "number": "cli",
     "quiet_parent": "cli",
     "run_cli": "cli",
     "Output": "outputs",

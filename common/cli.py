@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import re
 import sys
 import warnings
@@ -40,6 +41,43 @@ def attach_negative_values(argv: list[str]) -> list[str]:
         else:
             out.append(token)
     return out
+
+
+def number(minimum: float | None = None, maximum: float | None = None, *, strict: bool = True) -> Callable[[str], float]:
+    """The argparse type of a finite float option in (``minimum``, ``maximum``) (``strict``) or in the closed range,
+    a bound of None being open: a bad value is a usage error that names the option (``argument --tau: ...``)."""
+    below, above = (">", "<") if strict else (">=", "<=")
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = float("nan")
+        low = minimum is not None and not (value > minimum if strict else value >= minimum)
+        high = maximum is not None and not (value < maximum if strict else value <= maximum)
+        if not math.isfinite(value) or low or high:
+            rule = " and ".join(f"{op} {bound:g}" for op, bound in ((below, minimum), (above, maximum)) if bound is not None)
+            raise argparse.ArgumentTypeError(f"must be a finite number{' ' + rule if rule else ''}, got {text!r}")
+        return value
+
+    parse.__name__ = "number"
+    return parse
+
+
+def count(minimum: int) -> Callable[[str], int]:
+    """The argparse type of an integer option >= ``minimum``: a bad value is a usage error naming the option."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = minimum - 1
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be an integer >= {minimum}, got {text!r}")
+        return value
+
+    parse.__name__ = "count"
+    return parse
 
 
 _OWN_LOGGERS = ("pipeline", "tracker", "common")

@@ -10,7 +10,7 @@ import sys
 from collections.abc import Iterable
 from pathlib import Path
 
-from common.cli import quiet_parent, run_cli
+from common.cli import count, quiet_parent, run_cli
 from common.outputs import Output, command_outputs, input_files
 from pipeline.build.region import (
     build_features,
@@ -121,7 +121,7 @@ def make_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True, help="prior GeoTIFF to write")
     p.add_argument("--tiled", action="store_true", help="build tile by tile on Dask (a local in-process cluster without --scheduler)")
     p.add_argument("--scheduler", metavar="ADDRESS", help="Dask scheduler to run a tiled build on, e.g. tcp://10.0.0.5:8786 (implies --tiled)")
-    p.add_argument("--tile", type=int, default=1024, help="tile edge in cells for tiled builds (default 1024)")
+    p.add_argument("--tile", type=count(1), default=1024, help="tile edge in cells for tiled builds (default 1024)")
     p.set_defaults(func=cmd_build)
 
     p = sub.add_parser("show", parents=[quiet], help="draw a prior (and its features) as PNG maps and/or an interactive HTML map")
@@ -193,7 +193,7 @@ def add_learn_parser(sub, quiet: argparse.ArgumentParser) -> None:
     p.add_argument("--tiled", action="store_true",
                    help="compute the fit's statistics tile by tile on Dask (grids larger than memory); implies --no-cv, no hybrid")
     p.add_argument("--scheduler", metavar="ADDRESS", help="Dask scheduler for --tiled, e.g. tcp://10.0.0.5:8786 (implies --tiled)")
-    p.add_argument("--tile", type=int, default=1024, help="tile edge in cells for --tiled (default 1024)")
+    p.add_argument("--tile", type=count(1), default=1024, help="tile edge in cells for --tiled (default 1024)")
     p.set_defaults(func=cmd_learn)
 
 

@@ -226,10 +226,51 @@ def test_negative_values_need_no_equals_sign(region: Path, tmp_path: Path, tau: 
                            "--off-prior", "skip", *tau_args, "--out", str(tmp_path / "t.gpkg")])
         return code, capsys.readouterr().err
 
-    separate, attached = run("--tau", tau), run(f"--tau={tau}")
-    assert separate == attached
-    # S = e^{-n tau} needs a finite tau: -inf is refused by name, not by argparse
-    assert separate == ((1, "terrain-track: error: ExpS: tau must be finite, got -inf\n") if tau == "-inf" else (0, ""))
+    if tau == "-inf":  # S = e^{-n tau} needs a finite tau: a usage error naming --tau, in either spelling
+        for tau_args in (("--tau", tau), (f"--tau={tau}",)):
+            with pytest.raises(SystemExit) as exc:
+                run(*tau_args)
+            assert exc.value.code == 2
+            assert "terrain-track run: error: argument --tau: must be a finite number, got '-inf'" in capsys.readouterr().err
+        return
+    assert run("--tau", tau) == run(f"--tau={tau}") == (0, "")
+
+
+@pytest.mark.parametrize("command, option, value, rule", [
+    ("run", "--tau", "nan", "a finite number"),
+    ("run", "--poisson-mu", "-1", "a finite number > 0"),
+    ("run", "--q", "-0.1", "a finite number >= 0"),
+    ("run", "--velocity-std", "0", "a finite number > 0"),
+    ("run", "--gamma", "inf", "a finite number > 0"),
+    ("run", "--ellipse-prob", "1.5", "a finite number > 0 and < 1"),
+    ("run", "--sweeps", "-1", "an integer >= 0"),
+    ("run", "--samples", "0", "an integer >= 1"),
+    ("run", "--seed", "-3", "an integer >= 0"),
+    ("experiment", "--datasets", "1", "an integer >= 2"),
+    ("experiment", "--reports", "0", "an integer >= 1"),
+    ("experiment", "--workers", "-1", "an integer >= 1"),
+    ("experiment", "--azimuth-std-mrad", "nan", "a finite number > 0"),
+    ("heldout", "--block-m", "0", "a finite number > 0"),
+    ("heldout", "--folds", "1", "an integer >= 2"),
+    ("heldout", "--range-std-m", "-12", "a finite number > 0"),
+    ("simulate", "--seed", "-1", "an integer >= 0"),
+])
+def test_bad_numbers_are_usage_errors_naming_the_option(tmp_path: Path, capsys, command: str, option: str,
+                                                        value: str, rule: str) -> None:
+    """Every numeric option refuses a value out of its range before anything is read or written (exit 2)."""
+    with pytest.raises(SystemExit) as exc:
+        track_main([command, "--prior", str(tmp_path / "missing.tif"), option, value, "--out", str(tmp_path / "o")])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert f"error: argument {option}: must be {rule}, got '{value}'" in err and "Traceback" not in err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_bad_tile_is_a_usage_error(tmp_path: Path, capsys) -> None:
+    with pytest.raises(SystemExit) as exc:
+        prior_main(["build", str(tmp_path / "region.toml"), "--tile", "0", "--out", str(tmp_path / "p.tif")])
+    assert exc.value.code == 2
+    assert "error: argument --tile: must be an integer >= 1, got '0'" in capsys.readouterr().err
 
 
 def test_attach_negative_values_leaves_options_and_positionals() -> None:

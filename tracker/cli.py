@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from common.cli import quiet_parent, run_cli
+from common.cli import count, number, quiet_parent, run_cli
 from common.outputs import Output, command_outputs, input_files
 from tracker.association import DEFAULT_GAMMA, VARIANTS
 from tracker.integrate import METHODS
@@ -77,20 +77,20 @@ def add_run_parser(sub, quiet: argparse.ArgumentParser) -> None:
     p.add_argument("--layer", help="layer of a multi-layer reports file")
     p.add_argument("--variant", choices=VARIANTS, default="TT", help="UU, UT or TT (paper 1, section 6); default TT")
     s = p.add_mutually_exclusive_group()
-    s.add_argument("--tau", type=float, default=-1.7, help="S(n,k) = exp(-n tau); default -1.7 (the paper's best TT)")
-    s.add_argument("--poisson-mu", type=float, help="exact eq. 16 with a Poisson(mu) number of targets instead of tau")
+    s.add_argument("--tau", type=number(), default=-1.7, help="S(n,k) = exp(-n tau); default -1.7 (the paper's best TT)")
+    s.add_argument("--poisson-mu", type=number(0), help="exact eq. 16 with a Poisson(mu) number of targets instead of tau")
     p.add_argument("--method", choices=ASSOCIATION_METHODS, default="greedy",
                    help="greedy (paper 1, in file order; default) or batch (search over partitions from greedy's, docs/batch.md)")
-    p.add_argument("--sweeps", type=int, help=f"batch: annealed Gibbs sweeps (map mode) or burn-in sweeps (with --samples); default {DEFAULT_SWEEPS}")
-    p.add_argument("--samples", type=int, help="batch: sample the posterior for this many sweeps (membership from the samples) instead of the MAP search")
-    p.add_argument("--seed", type=int, help="batch: seed of the chain's random scan order and moves; default 0")
+    p.add_argument("--sweeps", type=count(0), help=f"batch: annealed Gibbs sweeps (map mode) or burn-in sweeps (with --samples); default {DEFAULT_SWEEPS}")
+    p.add_argument("--samples", type=count(1), help="batch: sample the posterior for this many sweeps (membership from the samples) instead of the MAP search")
+    p.add_argument("--seed", type=count(0), help="batch: seed of the chain's random scan order and moves; default 0")
     p.add_argument("--motion", choices=("static", "cv"), default="static", help="static targets or constant velocity")
-    p.add_argument("--q", type=float, default=0.1, help="cv: white-noise acceleration density, m^2/s^3")
-    p.add_argument("--velocity-std", type=float, default=10.0, help="cv: initial velocity std per axis, m/s")
-    p.add_argument("--gamma", type=float, default=DEFAULT_GAMMA, help="gate on d^2 (speed only; decisions do not depend on it)")
+    p.add_argument("--q", type=number(0, strict=False), default=0.1, help="cv: white-noise acceleration density, m^2/s^3")
+    p.add_argument("--velocity-std", type=number(0), default=10.0, help="cv: initial velocity std per axis, m/s")
+    p.add_argument("--gamma", type=number(0), default=DEFAULT_GAMMA, help="gate on d^2 (speed only; decisions do not depend on it)")
     p.add_argument("--off-prior", choices=("raise", "skip"), default="raise", help="reports where the prior has no mass")
     add_integrator_argument(p)
-    p.add_argument("--ellipse-prob", type=float, default=0.95, help="probability contour drawn as each target's ellipse")
+    p.add_argument("--ellipse-prob", type=number(0, 1), default=0.95, help="probability contour drawn as each target's ellipse")
     p.add_argument("--assignments", type=Path, help="also write report -> hypothesis index as CSV (batch: and its membership probability)")
     p.add_argument("--scheduler", metavar="ADDRESS", help="Dask scheduler whose workers build the prior's pyramid tiles, for "
                    "priors above 25 M cells (read window by window; the file must be on a path the workers share)")
@@ -143,22 +143,22 @@ def cmd_experiment(args: argparse.Namespace) -> None:
 def add_experiment_parser(sub, quiet: argparse.ArgumentParser) -> None:
     p = sub.add_parser("experiment", parents=[quiet], help="paper 1's simulation: UU, UT, TT over a tau grid on seeded data sets")
     p.add_argument("--prior", type=Path, required=True, help="prior GeoTIFF (terrain-prior build)")
-    p.add_argument("--datasets", type=int, default=28, help="number of data sets (seeds seed..seed+n-1); default 28")
-    p.add_argument("--reports", type=int, default=100, help="reports per data set; default 100")
+    p.add_argument("--datasets", type=count(2), default=28, help="number of data sets (seeds seed..seed+n-1); default 28")
+    p.add_argument("--reports", type=count(1), default=100, help="reports per data set; default 100")
     p.add_argument("--tau", default="-3:3:0.25", help="start:stop:step (stop included) or a comma list; default -3:3:0.25")
     p.add_argument("--variants", default="UU,UT,TT", help="comma list of UU, UT, TT")
     p.add_argument("--methods", default="greedy", help="comma list of greedy, batch, posterior (batch: MAP search from greedy's "
                    "partition; posterior: batch's Bayes estimates from a posterior sample started at the MAP, "
                    "the posterior-mean mixture and the posterior median of N_D)")
-    p.add_argument("--targets", type=int, default=200, help="targets drawn over the 14 km region before the window "
+    p.add_argument("--targets", type=count(1), default=200, help="targets drawn over the 14 km region before the window "
                    "(with --targets-file: picked among the file's locations in the window); default 200")
     add_targets_file_arguments(p)
-    p.add_argument("--seed", type=int, default=0, help="seed of the first data set")
-    p.add_argument("--poisson-mu", type=float, help="also run every variant with the exact eq. 16 S under Poisson(mu)")
-    p.add_argument("--azimuth-std-mrad", type=float, default=2.0, help="sensor azimuth standard deviation, mrad")
-    p.add_argument("--range-std-m", type=float, default=12.0, help="sensor slant-range standard deviation, m")
+    p.add_argument("--seed", type=count(0), default=0, help="seed of the first data set")
+    p.add_argument("--poisson-mu", type=number(0), help="also run every variant with the exact eq. 16 S under Poisson(mu)")
+    p.add_argument("--azimuth-std-mrad", type=number(0), default=2.0, help="sensor azimuth standard deviation, mrad")
+    p.add_argument("--range-std-m", type=number(0), default=12.0, help="sensor slant-range standard deviation, m")
     add_integrator_argument(p)
-    p.add_argument("--workers", type=int, help="local worker processes (default: all cores; 1 runs inline)")
+    p.add_argument("--workers", type=count(1), help="local worker processes (default: all cores; 1 runs inline)")
     p.add_argument("--scheduler", metavar="ADDRESS", help="Dask scheduler to spread the data sets over, e.g. tcp://10.0.0.5:8786 (instead of --workers)")
     p.add_argument("--title", help="figure title prefix (default: the prior's file name)")
     p.add_argument("--out", type=Path, required=True, help="output folder (results, summary.json, table1.md, PNGs)")
@@ -198,23 +198,23 @@ def add_heldout_parser(sub, quiet: argparse.ArgumentParser) -> None:
     p.add_argument("--region", type=Path, required=True, help="region TOML (features, hand-set tables, [learn])")
     p.add_argument("--targets-file", type=Path, required=True, help="past target locations: vector file (points or polygon centroids) or CSV x, y")
     p.add_argument("--layer", help="layer of a multi-layer --targets-file")
-    p.add_argument("--targets", type=int, default=50, help="targets per data set, picked in a held-out block; default 50")
-    p.add_argument("--datasets", type=int, default=28, help="data sets (held-out blocks in turn); default 28")
-    p.add_argument("--reports", type=int, default=100, help="reports per data set; default 100")
+    p.add_argument("--targets", type=count(1), default=50, help="targets per data set, picked in a held-out block; default 50")
+    p.add_argument("--datasets", type=count(2), default=28, help="data sets (held-out blocks in turn); default 28")
+    p.add_argument("--reports", type=count(1), default=100, help="reports per data set; default 100")
     p.add_argument("--tau", default="-9:3:0.25", help="start:stop:step (stop included) or a comma list; default -9:3:0.25 (wider than the paper's: dense sets want tau < -3)")
-    p.add_argument("--block-m", type=float, default=2000.0, help="side of the spatial blocks = data-set windows, m; default 2000")
-    p.add_argument("--folds", type=int, default=5, help="block folds; each held-out block's prior is learned from the other folds; default 5")
+    p.add_argument("--block-m", type=number(0), default=2000.0, help="side of the spatial blocks = data-set windows, m; default 2000")
+    p.add_argument("--folds", type=count(2), default=5, help="block folds; each held-out block's prior is learned from the other folds; default 5")
     p.add_argument("--alphas", default="0,0.5,1,1.5,2", help="exponents of the misspecified priors r^alpha; default 0,0.5,1,1.5,2")
     p.add_argument("--no-hybrid", action="store_true", help="leave out the learned hybrid prior")
     p.add_argument("--no-handset", action="store_true", help="leave out the config's hand-set tables")
     p.add_argument("--no-other", action="store_true", help="leave out the model learned on another (the furthest) fold")
     p.add_argument("--no-exact-s", action="store_true", help="leave out the exact eq. 16 S under Poisson(--targets)")
     p.add_argument("--batch", action="store_true", help="also run batch TT (MAP partition from greedy's) with the learned prior")
-    p.add_argument("--seed", type=int, default=0, help="seed of the first data set")
-    p.add_argument("--azimuth-std-mrad", type=float, default=2.0, help="sensor azimuth standard deviation, mrad")
-    p.add_argument("--range-std-m", type=float, default=12.0, help="sensor slant-range standard deviation, m")
+    p.add_argument("--seed", type=count(0), default=0, help="seed of the first data set")
+    p.add_argument("--azimuth-std-mrad", type=number(0), default=2.0, help="sensor azimuth standard deviation, mrad")
+    p.add_argument("--range-std-m", type=number(0), default=12.0, help="sensor slant-range standard deviation, m")
     add_integrator_argument(p)
-    p.add_argument("--workers", type=int, help="local worker processes (default: all cores; 1 runs inline)")
+    p.add_argument("--workers", type=count(1), help="local worker processes (default: all cores; 1 runs inline)")
     p.add_argument("--out", type=Path, required=True, help="output folder (results, summary.json, table.md, alpha.png, priors/)")
     p.set_defaults(func=cmd_heldout)
 
@@ -242,11 +242,11 @@ def cmd_simulate(args: argparse.Namespace) -> None:
 def add_simulate_parser(sub, quiet: argparse.ArgumentParser) -> None:
     p = sub.add_parser("simulate", parents=[quiet], help="simulate one data set of the paper's experiment (targets from the prior, airborne sensor)")
     p.add_argument("--prior", type=Path, required=True, help="prior GeoTIFF (terrain-prior build)")
-    p.add_argument("--seed", type=int, default=0, help="random seed")
-    p.add_argument("--targets", type=int, default=200, help="targets drawn over the central 14 km (kept: the central half); "
+    p.add_argument("--seed", type=count(0), default=0, help="random seed")
+    p.add_argument("--targets", type=count(1), default=200, help="targets drawn over the central 14 km (kept: the central half); "
                    "with --targets-file: picked among the file's locations in the central half")
     add_targets_file_arguments(p)
-    p.add_argument("--reports", type=int, default=100, help="reports, targets picked with replacement")
+    p.add_argument("--reports", type=count(1), default=100, help="reports, targets picked with replacement")
     p.add_argument("--truth-out", type=Path, help="also write the kept true targets as CSV (truth, x, y)")
     p.add_argument("--out", type=Path, required=True, help="reports CSV to write")
     p.set_defaults(func=cmd_simulate)

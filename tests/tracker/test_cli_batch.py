@@ -123,8 +123,6 @@ def test_batch_skips_reports_off_the_prior(scene, tmp_path):
     (["--samples", "10"], "--method greedy takes no --samples"),
     (["--sweeps", "3", "--seed", "1"], "--method greedy takes no --sweeps, --seed"),
     (["--method", "batch", "--motion", "cv"], "--method batch needs static targets"),
-    (["--method", "batch", "--samples", "0"], "--samples must be >= 1, got 0"),
-    (["--method", "batch", "--sweeps", "-1"], "--sweeps must be >= 0, got -1"),
 ])
 def test_bad_options_are_errors(scene, capsys, extra, message):
     d, _, _ = scene
