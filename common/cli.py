@@ -60,7 +60,6 @@ def number(minimum: float | None = None, maximum: float | None = None, *, strict
             raise argparse.ArgumentTypeError(f"must be a finite number{' ' + rule if rule else ''}, got {text!r}")
         return value
 
-    parse.__name__ = "number"
     return parse
 
 
@@ -76,7 +75,6 @@ def count(minimum: int) -> Callable[[str], int]:
             raise argparse.ArgumentTypeError(f"must be an integer >= {minimum}, got {text!r}")
         return value
 
-    parse.__name__ = "count"
     return parse
 
 
